@@ -1,0 +1,337 @@
+"""The ``jaxdem`` command line (SPEC section 3).
+
+::
+
+    jaxdem demo  [--out DIR]                                   # bundled tunnel scene
+    jaxdem run   SCENE.toml [--out DIR] [--set PATH=VALUE ...]  # solve, write results
+    jaxdem check SCENE.toml [--out DIR]                         # validate, draw blocks
+
+Exit status: 0 when solved (stable or not: a mechanism is an answer), 2 on
+invalid input (one line ``error: <message>`` on stderr naming the field, no
+traceback), 3 when the solver did not converge (iteration limit, non-finite
+values, contact capacity overflow). ``run`` writes ``result.json`` and the
+figures in every case where the solver returned, so that a failed run can be
+looked at.
+
+JAX, the solver and matplotlib are imported inside the commands, so that
+``jaxdem --help`` answers at once.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from contextlib import AbstractContextManager
+from pathlib import Path
+from typing import Any, TextIO
+
+EXIT_OK = 0
+EXIT_INVALID_INPUT = 2
+EXIT_NOT_CONVERGED = 3
+
+#: Statuses that count as an answer (exit 0); every other status exits 3.
+SOLVED_STATUSES = ("converged", "mechanism")
+
+DEFAULT_DEMO_OUT = "jaxdem-demo"
+
+
+class InputError(Exception):
+    """Invalid input found by the command line itself (exit status 2)."""
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the ``jaxdem`` command line; returns the exit status.
+
+    Args:
+      argv: arguments without the program name (default ``sys.argv[1:]``).
+
+    Returns:
+      0 solved (stable or not), 2 invalid input, 3 the solver did not converge.
+
+    Example::
+
+        from jaxdem.cli import main
+        status = main(["run", "tunnel.toml", "--out", "out/tunnel", "--set", "in_situ.k0=1.5"])
+    """
+    parser = _parser()
+    try:
+        args = parser.parse_args(None if argv is None else list(argv))
+    except SystemExit as exit_:  # --help (0) or a usage error (2, message already printed)
+        return int(exit_.code or 0)
+    if args.command is None:
+        parser.print_help(sys.stderr)
+        return EXIT_INVALID_INPUT
+    from jaxdem.scene import SceneError
+
+    try:
+        return int(args.func(args))
+    except (SceneError, InputError) as err:
+        _error(str(err))
+        return EXIT_INVALID_INPUT
+
+
+# ---------------------------------------------------------------------------
+# Commands
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """Solve the bundled tunnel scene ``jaxdem/data/demo.toml``."""
+    from importlib import resources
+
+    resource = resources.files("jaxdem").joinpath("data", "demo.toml")
+    if not resource.is_file():
+        raise InputError("the bundled demo scene jaxdem/data/demo.toml is missing")
+    with resources.as_file(resource) as path:
+        return _solve_and_report(path, Path(args.out), overrides={})
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """Solve a scene file with ``--set`` overrides and write results and figures."""
+    path = Path(args.scene)
+    out = Path(args.out) if args.out else Path("out") / path.stem
+    overrides = _parse_overrides([item for group in args.set or [] for item in group])
+    return _solve_and_report(path, out, overrides=overrides)
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    """Validate a scene file and draw its blocks to ``DIR/check.png``."""
+    from jaxdem.plots import plot_scene_check
+
+    path = Path(args.scene)
+    out = Path(args.out) if args.out else Path("out") / path.stem
+    scene = _load(path, overrides={})
+    print(f"OK: {_scene_summary(scene)}")
+    figure = plot_scene_check(scene, out / "check.png")
+    print(f"wrote {figure}")
+    return EXIT_OK
+
+
+# ---------------------------------------------------------------------------
+# Shared steps
+
+
+def _solve_and_report(path: Path, out: Path, overrides: dict[str, Any]) -> int:
+    scene = _load(path, overrides)
+    print(f"{_scene_name(scene, path)}: {_scene_summary(scene)}")
+
+    from jaxdem import solver
+    from jaxdem.plots import write_figures
+
+    bar = ProgressBar(n_stages=_count(scene, "stages"))
+    with bar:
+        result = solver.solve(scene, progress=bar)
+
+    written = [result.write_json(out / "result.json")]
+    written += write_figures(result, out)
+
+    print(_result_summary(result))
+    print("wrote " + ", ".join(str(p) for p in written))
+    return EXIT_OK if result.status in SOLVED_STATUSES else EXIT_NOT_CONVERGED
+
+
+def _load(path: Path, overrides: dict[str, Any]) -> Any:
+    """Load and validate a scene; every problem (unreadable file included) is a SceneError."""
+    from jaxdem.scene import load_scene
+
+    return load_scene(path, set=overrides or None)
+
+
+def _parse_overrides(items: Sequence[str]) -> dict[str, Any]:
+    """``--set PATH=VALUE`` arguments to a dict; bad syntax raises SceneError (exit 2)."""
+    if not items:
+        return {}
+    from jaxdem.scene import parse_set_arguments
+
+    return dict(parse_set_arguments(list(items)))
+
+
+def _error(message: str) -> None:
+    print(f"error: {message}", file=sys.stderr)
+
+
+# ---------------------------------------------------------------------------
+# Progress
+
+
+class ProgressBar(AbstractContextManager):
+    """Text progress over stages and load increments, on stderr.
+
+    Called by the solver once per increment with a dict: ``stage`` (name),
+    ``step`` (1-based), ``n_steps``, ``status``, ``iterations``, ``substeps``,
+    ``residual``. On a terminal one line is redrawn in place::
+
+        stage 1/2 excavate [###-------] step 3/10  it 12  res 3.1e-11
+
+    elsewhere (a log file, CI) one line is printed per increment.
+    """
+
+    def __init__(self, n_stages: int = 0, stream: TextIO | None = None, width: int = 20):
+        self.stream = sys.stderr if stream is None else stream
+        self.n_stages = n_stages
+        self.width = width
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self._stages: list[str] = []
+        self._open_line = False
+
+    def __call__(self, event: dict[str, Any]) -> None:
+        line = self.format(event)
+        if self.tty:
+            self.stream.write("\r\033[K" + line)
+            self._open_line = True
+        else:
+            self.stream.write(line + "\n")
+        self.stream.flush()
+
+    def format(self, event: dict[str, Any]) -> str:
+        stage = str(event.get("stage", ""))
+        if not self._stages or self._stages[-1] != stage:
+            self._stages.append(stage)
+        index = len(self._stages)
+        total = max(self.n_stages, index)
+        step = int(event.get("step", 0))
+        n_steps = max(int(event.get("n_steps", 0)), 1)
+        filled = min(self.width, round(self.width * step / n_steps))
+        bar = "#" * filled + "-" * (self.width - filled)
+        parts = [f"stage {index}/{total}"]
+        if stage:
+            parts.append(stage)
+        parts.append(f"[{bar}] step {step}/{n_steps}")
+        text = " ".join(parts)
+        text += f"  it {int(event.get('iterations', 0))}"
+        substeps = int(event.get("substeps", 1) or 1)
+        if substeps > 1:
+            text += f"  sub {substeps}"
+        residual = event.get("residual")
+        if residual is not None:
+            text += f"  res {float(residual):.1e}"
+        status = str(event.get("status", ""))
+        if status and status != "converged":
+            text += f"  {status}"
+        return text
+
+    def __exit__(self, *exc: object) -> None:
+        if self._open_line:
+            self.stream.write("\n")
+            self.stream.flush()
+            self._open_line = False
+
+
+# ---------------------------------------------------------------------------
+# Summaries
+
+
+def _count(scene: Any, name: str) -> int:
+    try:
+        return len(getattr(scene, name, None) or ())
+    except TypeError:
+        return 0
+
+
+def _scene_name(scene: Any, path: Path) -> str:
+    return str(getattr(scene, "name", None) or path.stem)
+
+
+def _scene_summary(scene: Any) -> str:
+    """'12 blocks, 2 joints, 3 discontinuities, ...' for the parts the scene has."""
+    parts = [f"{_count(scene, 'blocks')} blocks", f"{_count(scene, 'joints')} joints"]
+    for name in ("discontinuities", "boundaries", "bolts", "monitors", "stages"):
+        n = _count(scene, name)
+        if n:
+            parts.append(f"{n} {name}" if n != 1 else f"1 {_singular(name)}")
+    return ", ".join(parts)
+
+
+def _singular(name: str) -> str:
+    return {"discontinuities": "discontinuity", "boundaries": "boundary"}.get(name, name[:-1])
+
+
+def _result_summary(result: Any) -> str:
+    """Status, stability, monitors table and timings, as printed after a run."""
+    lines = [f"status: {result.status}: {result.message}"]
+    if result.stable:
+        lines.append("stable: yes")
+    else:
+        ids = [str(i) for i in result.moving_blocks]
+        moving = ", ".join(ids[:20])
+        more = f" (+{len(ids) - 20} more)" if len(ids) > 20 else ""
+        lines.append(f"stable: NO, moving blocks: {moving}{more}" if moving else "stable: NO")
+    lines += _monitor_table(result.monitors or {})
+    contacts = result.contacts or {}
+    if contacts:
+        lines.append(
+            f"contacts: {contacts.get('total', 0)} total, {contacts.get('open', 0)} open, "
+            f"{contacts.get('slipping', 0)} slipping"
+        )
+    timing = result.timing or {}
+    lines.append(
+        "time: "
+        + ", ".join(
+            f"{k} {float(timing.get(f'{k}_s', 0.0)):.2f} s" for k in ("build", "compile", "solve")
+        )
+    )
+    return "\n".join(lines)
+
+
+def _monitor_table(monitors: dict[str, dict[str, Any]]) -> list[str]:
+    """Rows in mm: point (ux, uy, |u|) or section (convergence, along)."""
+    if not monitors:
+        return []
+    width = max(8, *(len(name) for name in monitors))
+    rows = [
+        f"{'monitor':<{width}}  {'ux (mm)':>10} {'uy (mm)':>10} {'|u| (mm)':>10} {'conv. (mm)':>11}"
+    ]
+    blank = ""
+    for name, entry in monitors.items():
+        if "displacement" in entry:
+            ux, uy = (1e3 * float(v) for v in entry["displacement"][:2])
+            rows.append(
+                f"{name:<{width}}  {ux:>10.4g} {uy:>10.4g} {(ux**2 + uy**2) ** 0.5:>10.4g}"
+                f" {blank:>11}"
+            )
+        elif "convergence" in entry:
+            c = 1e3 * float(entry["convergence"])
+            rows.append(f"{name:<{width}}  {blank:>10} {blank:>10} {blank:>10} {c:>11.4g}")
+        else:
+            rows.append(f"{name:<{width}}  {entry}")
+    return rows
+
+
+# ---------------------------------------------------------------------------
+# Parser
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="jaxdem",
+        description="2D block-spring discrete element analysis of tunnels in jointed rock.",
+        epilog="Exit status: 0 solved (stable or not), 2 invalid input, 3 solver did not converge.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    demo = sub.add_parser("demo", help="solve the bundled tunnel scene")
+    demo.add_argument(
+        "--out",
+        default=DEFAULT_DEMO_OUT,
+        metavar="DIR",
+        help=f"output folder (default {DEFAULT_DEMO_OUT})",
+    )
+    demo.set_defaults(func=cmd_demo)
+
+    run = sub.add_parser("run", help="solve a scene, write result.json and figures")
+    run.add_argument("scene", metavar="SCENE.toml")
+    run.add_argument("--out", metavar="DIR", help="output folder (default out/<scene name>)")
+    run.add_argument(
+        "--set",
+        action="append",
+        nargs="+",
+        metavar="PATH=VALUE",
+        help="override scene parameters, e.g. --set joints.set1.kn=2e6 in_situ.k0=1.5 (repeatable)",
+    )
+    run.set_defaults(func=cmd_run)
+
+    check = sub.add_parser("check", help="validate a scene and draw its blocks")
+    check.add_argument("scene", metavar="SCENE.toml")
+    check.add_argument("--out", metavar="DIR", help="output folder (default out/<scene name>)")
+    check.set_defaults(func=cmd_check)
+    return parser

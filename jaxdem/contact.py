@@ -1,0 +1,269 @@
+"""Contact detection: broad phase (candidate pairs) and narrow phase (spring slots).
+
+Broad phase. Axis-aligned boxes grown by the detection margin. Blocks in
+``model.big`` (walls, blocks much larger than the median) are tested against
+every block; the others go into a uniform grid of cells no smaller than the
+largest of them, sorted by cell key, and each block looks at its own and the
+eight neighbouring cells. Capacities (pairs, blocks per cell) are fixed; when
+one is exceeded the ``overflow`` flag is set and the host grows it and
+recompiles (never silent truncation). Small scenes use all pairs.
+
+Narrow phase (vertex-to-edge, per pair (a, b), a < b). Each vertex of one
+block is tested against the edges of the other. A vertex inside the other
+polygon grown by the margin is a spring slot, on the face it is closest to
+(preferring a face anti-parallel to one of its own adjacent faces). The slot
+is part of an edge-to-edge contact when its own adjacent face is
+anti-parallel to that face within ``cos_parallel``: its effective length is
+half the overlap of the two faces, so the two end points of a face-to-face
+contact share Le = |p1 - p2| (paper eq. 8). Otherwise it is a corner-to-edge
+contact whose effective length is ``corner_share`` (default 0.1) times the
+shorter of the two faces meeting at the corner: a corner bears on a short
+length of the face, and the choice only sets the corner spring's stiffness,
+never the strength check, which is per point. Where a vertex of b sits at the
+contact point of a vertex of a (within that point's overlap), only a's slot is
+kept, so no point is counted twice.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from jaxdem.state import Model, State
+
+
+def edges(verts: jax.Array, nv: jax.Array):
+    """Edge start points, end points, lengths, unit tangents and outward normals.
+
+    Args:
+      verts: (..., V, 2) counter-clockwise vertices (padding repeats vertex 0).
+      nv: (...,) vertex counts.
+    Returns:
+      q0, q1: (..., V, 2); length: (..., V); t, n: (..., V, 2); emask: (..., V).
+      Edge k runs from vertex k to vertex k + 1 (mod nv); padded edges are masked.
+    """
+    V = verts.shape[-2]
+    k = jnp.arange(V)
+    nxt = jnp.where(k + 1 < nv[..., None], k + 1, 0)
+    q1 = jnp.take_along_axis(verts, nxt[..., None], axis=-2)
+    d = q1 - verts
+    length = jnp.sqrt(jnp.sum(d * d, axis=-1))
+    emask = k < nv[..., None]
+    safe = jnp.where(emask & (length > 0), length, 1.0)
+    t = d / safe[..., None]
+    n = jnp.stack([t[..., 1], -t[..., 0]], axis=-1)
+    return verts, q1, length, t, n, emask
+
+
+def bounding_boxes(verts: jax.Array, margin) -> jax.Array:
+    """(N, 4) boxes (xmin, ymin, xmax, ymax), grown by half the margin on each side."""
+    lo = jnp.min(verts, axis=1) - 0.5 * margin
+    hi = jnp.max(verts, axis=1) + 0.5 * margin
+    return jnp.concatenate([lo, hi], axis=-1)
+
+
+def _boxes_overlap(bi, bj):
+    return (
+        (bi[..., 0] <= bj[..., 2])
+        & (bj[..., 0] <= bi[..., 2])
+        & (bi[..., 1] <= bj[..., 3])
+        & (bj[..., 1] <= bi[..., 3])
+    )
+
+
+def broad_phase(model: Model, verts: jax.Array, capacity: int):
+    """Candidate pairs (a < b) whose grown boxes overlap and that can move.
+
+    Returns:
+      pairs: (capacity, 2) int32, empty entries (N, N), sorted by a * N + b.
+      count: number of candidate pairs found (more than ``capacity``: overflow).
+      cell_full: a grid cell held more than ``model.cell_capacity`` blocks.
+    """
+    N = model.n_blocks
+    box = bounding_boxes(verts, model.margin)
+    ids = jnp.arange(N)
+    if not model.use_cells:
+        ok = _boxes_overlap(box[:, None, :], box[None, :, :])
+        ok = ok & (ids[:, None] < ids[None, :])
+        ok = ok & (model.free[:, None] | model.free[None, :])
+        count = jnp.sum(ok)
+        a, b = jnp.nonzero(ok, size=capacity, fill_value=N)
+        pairs = jnp.stack([a, b], axis=-1).astype(jnp.int32)
+        return pairs, count, jnp.array(False)
+
+    is_big = jnp.zeros(N, bool).at[model.big].set(True) if model.n_big else jnp.zeros(N, bool)
+    # Cells no smaller than the largest small block in any orientation.
+    small_r = jnp.where(is_big, 0.0, model.radius)
+    cell = 2.0 * jnp.max(small_r) + 2.0 * model.margin
+    centre = 0.5 * (box[:, :2] + box[:, 2:])
+    origin = jnp.min(jnp.where(is_big[:, None], jnp.inf, centre), axis=0)
+    cxy = jnp.clip(jnp.floor((centre - origin) / cell).astype(jnp.int32), 0, 2**15 - 2) + 1
+    key = jnp.where(is_big, -1, cxy[:, 0] * 2**16 + cxy[:, 1])
+    order = jnp.argsort(key)
+    skey = key[order]
+    cap = model.cell_capacity
+    offsets = jnp.array([(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1)], jnp.int32)
+    nkey = (cxy[:, None, 0] + offsets[None, :, 0]) * 2**16 + (cxy[:, None, 1] + offsets[None, :, 1])
+    start = jnp.searchsorted(skey, nkey, side="left")
+    stop = jnp.searchsorted(skey, nkey, side="right")
+    cell_full = jnp.any(~is_big[:, None] & (stop - start > cap))
+    slot = start[:, :, None] + jnp.arange(cap)[None, None, :]
+    inside = slot < stop[:, :, None]
+    j = order[jnp.clip(slot, 0, N - 1)].reshape(N, -1)
+    ok_cell = inside.reshape(N, -1) & (ids[:, None] < j) & ~is_big[:, None]
+    ok_cell = ok_cell & _boxes_overlap(box[:, None, :], box[j])
+    ok_cell = ok_cell & (model.free[:, None] | model.free[j])
+    a_cell = jnp.broadcast_to(ids[:, None], j.shape)
+    cand_a = [a_cell.reshape(-1)]
+    cand_b = [j.reshape(-1)]
+    cand_ok = [ok_cell.reshape(-1)]
+    if model.n_big:
+        g = model.big
+        ok_big = _boxes_overlap(box[g][:, None, :], box[None, :, :])
+        ok_big = ok_big & (g[:, None] != ids[None, :]) & (~is_big[None, :] | (ids[None, :] > g[:, None]))
+        ok_big = ok_big & (model.free[g][:, None] | model.free[None, :])
+        ga = jnp.broadcast_to(g[:, None], ok_big.shape)
+        gb = jnp.broadcast_to(ids[None, :], ok_big.shape)
+        cand_a.append(jnp.minimum(ga, gb).reshape(-1))
+        cand_b.append(jnp.maximum(ga, gb).reshape(-1))
+        cand_ok.append(ok_big.reshape(-1))
+    a = jnp.concatenate(cand_a)
+    b = jnp.concatenate(cand_b)
+    ok = jnp.concatenate(cand_ok)
+    count = jnp.sum(ok)
+    sel = jnp.nonzero(ok, size=capacity, fill_value=a.shape[0])[0]
+    a = jnp.concatenate([a, jnp.array([N])])[sel]
+    b = jnp.concatenate([b, jnp.array([N])])[sel]
+    # Sort by key so that history matching and output are order-independent.
+    k = a.astype(jnp.int64) * (N + 1) + b
+    o = jnp.argsort(k)
+    pairs = jnp.stack([a[o], b[o]], axis=-1).astype(jnp.int32)
+    return pairs, count, cell_full
+
+
+def _vertex_edge(model: Model, xv, nvx, vmx, cx, ey, cy, not_dup):
+    """Slots of the vertices of block X against the edges of block Y, per pair.
+
+    Args:
+      xv: (P, V, 2) vertices of X; nvx: (P,) counts; vmx: (P, V) mask.
+      cx, cy: (P, 2) centroids. ey: edges of Y (output of :func:`edges`).
+      not_dup: (P, V) bool, False for vertices already counted from the other side.
+    Returns a dict of (P, V) arrays: active, gap (m, negative = overlap), point,
+    normal and tangent of the contacted face, edge index, share (m), h_x, h_y (m),
+    own_edge (X's face anti-parallel to it, or -1).
+    """
+    q0, _, ly, ty, ny, emy = ey
+    V = xv.shape[1]
+    rel = xv[:, :, None, :] - q0[:, None, :, :]  # (P, V, V_edges, 2)
+    d = jnp.sum(rel * ny[:, None, :, :], axis=-1)
+    s = jnp.sum(rel * ty[:, None, :, :], axis=-1)
+    d = jnp.where(emy[:, None, :], d, -jnp.inf)
+    dmax = jnp.max(d, axis=-1)
+    # Adjacent faces of each vertex of X: outgoing (v -> v+1) and incoming (v-1 -> v).
+    _, _, lx, tx, _, _ = edges(xv, nvx)
+    k = jnp.arange(V)
+    prev = jnp.where(k[None, :] > 0, k[None, :] - 1, nvx[:, None] - 1)
+    t_in = jnp.take_along_axis(tx, prev[..., None], axis=1)
+    l_in = jnp.take_along_axis(lx, prev, axis=1)
+    c_out = jnp.sum(tx[:, :, None, :] * ty[:, None, :, :], axis=-1)  # (P, V, Ve)
+    c_in = jnp.sum(t_in[:, :, None, :] * ty[:, None, :, :], axis=-1)
+    par_out = c_out < -model.cos_parallel
+    par_in = c_in < -model.cos_parallel
+    # A vertex that overlaps near a corner is on the face anti-parallel to its own.
+    near_face = d >= dmax[..., None] - model.margin
+    score = d + jnp.where(near_face & (par_out | par_in), 1e30, 0.0)
+    e = jnp.argmax(score, axis=-1).astype(jnp.int32)
+    take = lambda x: jnp.take_along_axis(x, e[..., None], axis=-1)[..., 0]  # noqa: E731
+    gap = take(d)
+    s_e = take(s)
+    L_e = jnp.take_along_axis(ly, e, axis=1)
+    in_span = (s_e >= -model.touch_tol) & (s_e <= L_e + model.touch_tol)
+    active = vmx & not_dup & (dmax <= model.margin) & in_span
+    po = take(par_out)
+    pi = take(par_in)
+    n = jnp.take_along_axis(ny, e[..., None], axis=1)
+    t = jnp.take_along_axis(ty, e[..., None], axis=1)
+    q = jnp.take_along_axis(q0, e[..., None], axis=1)
+    # Overlap of X's anti-parallel face with the contacted face, along that face.
+    nxt = jnp.where(k[None, :] + 1 < nvx[:, None], k[None, :] + 1, 0)
+    other = jnp.where(po[..., None], jnp.take_along_axis(xv, nxt[..., None], axis=1),
+                      jnp.take_along_axis(xv, prev[..., None], axis=1))
+    s0 = s_e
+    s1 = jnp.sum((other - q) * t, axis=-1)
+    lo = jnp.clip(jnp.minimum(s0, s1), 0.0, L_e)
+    hi = jnp.clip(jnp.maximum(s0, s1), 0.0, L_e)
+    overlap = hi - lo
+    corner = model.corner_share * jnp.minimum(lx, l_in)
+    parallel = po | pi
+    share = jnp.where(parallel, 0.5 * overlap, corner)
+    own_edge = jnp.where(po, k[None, :], jnp.where(pi, prev, -1))
+    h_x = jnp.maximum(jnp.sum((cx[:, None, :] - q) * n, axis=-1), 0.0)
+    h_y = jnp.maximum(jnp.sum((q - cy[:, None, :]) * n, axis=-1), 0.0)
+    return dict(active=active, gap=gap, point=xv, normal=n, tangent=t, edge=e,
+                share=share, h_x=h_x, h_y=h_y, own_edge=own_edge)
+
+
+def narrow_phase(model: Model, verts, centroid, pairs):
+    """Spring slots of every candidate pair, flattened to S = P * 2 * V.
+
+    Returns a dict of (S, ...) arrays: ``a`` (vertex block), ``b`` (face
+    block), ``active``, ``gap``, ``point``, ``normal``, ``tangent``, ``edge``,
+    ``share`` (effective length of the point, m), ``h_a``, ``h_b`` (distances of
+    the centroids from the contact line, m, eqs. 6-7), ``joint`` (joint id).
+    """
+    N = model.n_blocks
+    P = pairs.shape[0]
+    V = model.n_vertices
+    valid = pairs[:, 0] < N
+    a = jnp.clip(pairs[:, 0], 0, N - 1)
+    b = jnp.clip(pairs[:, 1], 0, N - 1)
+    va, vb = verts[a], verts[b]
+    nva, nvb = model.nv[a], model.nv[b]
+    vma = model.vmask[a] & valid[:, None]
+    vmb = model.vmask[b] & valid[:, None]
+    ea, eb = edges(va, nva), edges(vb, nvb)
+    ca, cb = centroid[a], centroid[b]
+    s0 = _vertex_edge(model, va, nva, vma, ca, eb, cb, jnp.ones((P, V), bool))
+    # A vertex of b at a contact point of a vertex of a (within that point's
+    # overlap) is the same contact point: it is counted once, from a.
+    dv = vb[:, :, None, :] - va[:, None, :, :]
+    reach = 1.5 * jnp.abs(jnp.minimum(s0["gap"], 0.0)) + model.touch_tol
+    coincide = jnp.any((jnp.sum(dv * dv, axis=-1) <= reach[:, None, :] ** 2)
+                       & s0["active"][:, None, :], axis=-1)
+    s1 = _vertex_edge(model, vb, nvb, vmb, cb, ea, ca, ~coincide)
+    out = {k: jnp.stack([s0[k], s1[k]], axis=1) for k in s0}
+    A = jnp.stack([jnp.broadcast_to(a[:, None], (P, V)), jnp.broadcast_to(b[:, None], (P, V))], 1)
+    B = jnp.stack([jnp.broadcast_to(b[:, None], (P, V)), jnp.broadcast_to(a[:, None], (P, V))], 1)
+    # Joint of the slot: that of the contacted face, else of the own face, else the default.
+    j_face = model.edge_joint[B, out["edge"]]
+    j_own = jnp.where(out["own_edge"] >= 0,
+                      model.edge_joint[A, jnp.maximum(out["own_edge"], 0)], -1)
+    joint = jnp.where(j_face >= 0, j_face, jnp.where(j_own >= 0, j_own, model.joint_kn.shape[0] - 1))
+    S = P * 2 * V
+    flat = lambda x: x.reshape((S,) + x.shape[3:])  # noqa: E731
+    res = {k: flat(v) for k, v in out.items() if k not in ("h_x", "h_y", "own_edge")}
+    res.update(a=flat(A), b=flat(B), h_a=flat(out["h_x"]), h_b=flat(out["h_y"]), joint=flat(joint))
+    return res
+
+
+def remap_history(state: State, new_pairs: jax.Array, n_blocks: int):
+    """Carry each slot's history (shear force, failure, face) to the new pair list.
+
+    Slots are matched by their stable key (pair, side, vertex). Returns the old
+    ``fs``, ``failed``, ``edge``, ``present`` and ``cstate`` arrays laid out
+    along ``new_pairs`` (empty where the pair is new).
+    """
+    N1 = n_blocks + 1
+    okey = state.pairs[:, 0].astype(jnp.int64) * N1 + state.pairs[:, 1]
+    nkey = new_pairs[:, 0].astype(jnp.int64) * N1 + new_pairs[:, 1]
+    order = jnp.argsort(okey)
+    sk = okey[order]
+    pos = jnp.clip(jnp.searchsorted(sk, nkey), 0, sk.shape[0] - 1)
+    hit = (sk[pos] == nkey) & (new_pairs[:, 0] < n_blocks)
+    src = order[pos]
+    pick = lambda x, empty: jnp.where(  # noqa: E731
+        hit[:, None, None], x[src], jnp.asarray(empty, x.dtype))
+    return dict(
+        fs=pick(state.fs, 0), failed=pick(state.failed, False), edge=pick(state.edge, -1),
+        present=pick(state.present, False), cstate=pick(state.cstate, 0),
+    )

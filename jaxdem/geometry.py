@@ -1,0 +1,307 @@
+"""Polygons on the host: areas, convexity, clipping and overlap search (NumPy, float64).
+
+A polygon is an ``(n, 2)`` array of vertices in m, listed once (the first vertex is
+not repeated at the end). The convex routines expect counter-clockwise order, as the
+scene files do. Nothing here is traced by JAX: it runs once, before any computation,
+to validate and prepare scenes.
+
+Example::
+
+    >>> sq = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    >>> overlap_area(sq, sq + 0.5)
+    0.25
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+__all__ = [
+    "bbox",
+    "centroid",
+    "characteristic_length",
+    "convex_clip",
+    "corner_sines",
+    "find_overlapping_pairs",
+    "has_repeated_points",
+    "is_convex",
+    "overlap_area",
+    "point_in_polygon",
+    "point_on_segment",
+    "segments_intersect",
+    "self_intersects",
+    "signed_area",
+]
+
+
+def _as_poly(v: np.ndarray) -> np.ndarray:
+    a = np.asarray(v, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1] != 2:
+        raise ValueError(f"polygon must have shape (n, 2), got {a.shape}")
+    return a
+
+
+def _next(a: np.ndarray) -> np.ndarray:
+    # Same as np.roll(a, -1, axis=0), without its overhead (called per block in validation).
+    return np.concatenate([a[1:], a[:1]])
+
+
+def _prev(a: np.ndarray) -> np.ndarray:
+    return np.concatenate([a[-1:], a[:-1]])
+
+
+def _shoelace(v: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    # Relative to the first vertex: keeps digits for coordinates far from the origin.
+    d = v - v[0]
+    dn = _next(d)
+    cross = d[:, 0] * dn[:, 1] - dn[:, 0] * d[:, 1]
+    return 0.5 * float(np.sum(cross)), d, cross
+
+
+def signed_area(v: np.ndarray) -> float:
+    """Signed area of polygon ``v`` (m2), positive when the vertices run counter-clockwise."""
+    v = _as_poly(v)
+    if len(v) < 3:
+        return 0.0
+    return _shoelace(v)[0]
+
+
+def centroid(v: np.ndarray) -> np.ndarray:
+    """Area centroid of polygon ``v`` (m), shape (2,); vertex mean if the area is zero."""
+    v = _as_poly(v)
+    if len(v) == 0:
+        raise ValueError("centroid of an empty polygon")
+    if len(v) < 3:
+        return v.mean(axis=0)
+    area, d, cross = _shoelace(v)
+    diag2 = float(np.sum((v.max(axis=0) - v.min(axis=0)) ** 2))
+    if abs(area) <= 1e-14 * diag2 or area == 0.0:
+        return v.mean(axis=0)
+    dn = _next(d)
+    c = np.sum((d + dn) * cross[:, None], axis=0) / (6.0 * area)
+    return v[0] + c
+
+
+def corner_sines(v: np.ndarray) -> np.ndarray:
+    """Sine of the turning angle at each vertex of ``v`` (-), shape (n,); > 0 left, < 0 reflex.
+
+    Entry k is for vertex k, between edge (k-1, k) and edge (k, k+1); 0 marks a collinear
+    (180 degree) vertex or a zero-length edge.
+    """
+    v = _as_poly(v)
+    e = _next(v) - v
+    ep = _prev(e)
+    cross = ep[:, 0] * e[:, 1] - ep[:, 1] * e[:, 0]
+    lens = np.hypot(e[:, 0], e[:, 1])
+    denom = lens * _prev(lens)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.where(denom > 0.0, cross / np.where(denom > 0.0, denom, 1.0), 0.0)
+    return s
+
+
+def is_convex(v: np.ndarray, tol: float = 1e-9) -> bool:
+    """True if ``v`` is strictly convex and counter-clockwise (no reflex or 180-degree vertex).
+
+    ``tol`` bounds the sine of the turning angle (-) below which a vertex counts as collinear.
+    """
+    v = _as_poly(v)
+    if len(v) < 3:
+        return False
+    s = corner_sines(v)
+    if np.any(s <= tol):
+        return False
+    # All left turns is not enough: a star polygon winds twice. Total turning must be 2 pi.
+    e = _next(v) - v
+    ep = _prev(e)
+    cross = ep[:, 0] * e[:, 1] - ep[:, 1] * e[:, 0]
+    dot = ep[:, 0] * e[:, 0] + ep[:, 1] * e[:, 1]
+    turning = float(np.sum(np.arctan2(cross, dot)))
+    return abs(turning - 2.0 * math.pi) < 1e-6
+
+
+def point_on_segment(p: np.ndarray, a: np.ndarray, b: np.ndarray, tol: float) -> bool:
+    """True if point ``p`` lies within distance ``tol`` (m) of segment ``a``-``b``."""
+    px, py = float(p[0]), float(p[1])
+    ax, ay = float(a[0]), float(a[1])
+    dx, dy = float(b[0]) - ax, float(b[1]) - ay
+    len2 = dx * dx + dy * dy
+    if len2 == 0.0:
+        return math.hypot(px - ax, py - ay) <= tol
+    t = min(1.0, max(0.0, ((px - ax) * dx + (py - ay) * dy) / len2))
+    return math.hypot(px - (ax + t * dx), py - (ay + t * dy)) <= tol
+
+
+def _orient(a: tuple[float, float], b: tuple[float, float], c: tuple[float, float]) -> float:
+    return (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
+
+
+def segments_intersect(
+    p1: np.ndarray, p2: np.ndarray, q1: np.ndarray, q2: np.ndarray, tol: float = 0.0
+) -> bool:
+    """True if segments ``p1``-``p2`` and ``q1``-``q2`` cross or touch (within ``tol``, m)."""
+    a = (float(p1[0]), float(p1[1]))
+    b = (float(p2[0]), float(p2[1]))
+    c = (float(q1[0]), float(q1[1]))
+    d = (float(q2[0]), float(q2[1]))
+    d1, d2 = _orient(c, d, a), _orient(c, d, b)
+    d3, d4 = _orient(a, b, c), _orient(a, b, d)
+    if ((d1 > 0.0 > d2) or (d1 < 0.0 < d2)) and ((d3 > 0.0 > d4) or (d3 < 0.0 < d4)):
+        return True
+    return (
+        point_on_segment(a, c, d, tol)
+        or point_on_segment(b, c, d, tol)
+        or point_on_segment(c, a, b, tol)
+        or point_on_segment(d, a, b, tol)
+    )
+
+
+def _diag(v: np.ndarray) -> float:
+    return float(np.hypot(*(v.max(axis=0) - v.min(axis=0))))
+
+
+def self_intersects(v: np.ndarray) -> bool:
+    """True if two non-adjacent edges of ``v`` cross or touch, or two adjacent edges fold back.
+
+    Touching is judged to 1e-12 of the polygon's bounding-box diagonal (round-off only).
+    """
+    v = _as_poly(v)
+    n = len(v)
+    if n < 3:
+        return False
+    tol = 1e-12 * _diag(v)
+    pts = [(float(x), float(y)) for x, y in v]
+    for i in range(n):
+        a, b = pts[i], pts[(i + 1) % n]
+        # Adjacent edge (i+1, i+2) folding back over edge i shares more than vertex b.
+        c = pts[(i + 2) % n]
+        if a != b and b != c and (point_on_segment(c, a, b, tol) or point_on_segment(a, b, c, tol)):
+            return True
+        for j in range(i + 2, n):
+            if i == 0 and j == n - 1:
+                continue  # edges 0 and n-1 share vertex 0
+            if segments_intersect(a, b, pts[j], pts[(j + 1) % n], tol):
+                return True
+    return False
+
+
+def has_repeated_points(v: np.ndarray, tol: float) -> bool:
+    """True if two vertices of ``v`` lie within distance ``tol`` (m) of each other."""
+    v = _as_poly(v)
+    if len(v) < 2:
+        return False
+    diff = v[:, None, :] - v[None, :, :]
+    dist = np.hypot(diff[..., 0], diff[..., 1])
+    iu = np.triu_indices(len(v), k=1)
+    return bool(np.any(dist[iu] <= tol))
+
+
+def point_in_polygon(p: np.ndarray, v: np.ndarray, tol: float = 0.0) -> bool:
+    """True if point ``p`` is inside polygon ``v`` or within ``tol`` (m) of its boundary.
+
+    Works for convex and non-convex simple polygons, in either orientation (even-odd rule).
+    """
+    v = _as_poly(v)
+    px, py = float(p[0]), float(p[1])
+    a = v
+    b = _next(v)
+    d = b - a
+    len2 = np.sum(d * d, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(len2 > 0.0, ((px - a[:, 0]) * d[:, 0] + (py - a[:, 1]) * d[:, 1]) / len2, 0.0)
+    t = np.clip(t, 0.0, 1.0)
+    dist = np.hypot(px - (a[:, 0] + t * d[:, 0]), py - (a[:, 1] + t * d[:, 1]))
+    if np.any(dist <= tol):
+        return True
+    # Crossing number of a ray towards +x; half-open rule in y avoids double counts at vertices.
+    ay, by = a[:, 1], b[:, 1]
+    straddle = (ay > py) != (by > py)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x_cross = a[:, 0] + (py - ay) * d[:, 0] / np.where(straddle, by - ay, 1.0)
+    return bool(np.count_nonzero(straddle & (px < x_cross)) % 2 == 1)
+
+
+def convex_clip(subject: np.ndarray, clip: np.ndarray) -> np.ndarray:
+    """Intersection of two convex CCW polygons (Sutherland-Hodgman), (m, 2) in m; (0, 2) if none."""
+    out = [(float(x), float(y)) for x, y in _as_poly(subject)]
+    cl = [(float(x), float(y)) for x, y in _as_poly(clip)]
+    nc = len(cl)
+    for k in range(nc):
+        if not out:
+            break
+        ax, ay = cl[k]
+        bx, by = cl[(k + 1) % nc]
+        ex, ey = bx - ax, by - ay
+        inp, out = out, []
+        prev = inp[-1]
+        s_prev = ex * (prev[1] - ay) - ey * (prev[0] - ax)
+        for cur in inp:
+            s_cur = ex * (cur[1] - ay) - ey * (cur[0] - ax)
+            if s_cur >= 0.0:
+                if s_prev < 0.0:
+                    t = s_prev / (s_prev - s_cur)
+                    out.append((prev[0] + t * (cur[0] - prev[0]), prev[1] + t * (cur[1] - prev[1])))
+                out.append(cur)
+            elif s_prev >= 0.0:
+                t = s_prev / (s_prev - s_cur)
+                out.append((prev[0] + t * (cur[0] - prev[0]), prev[1] + t * (cur[1] - prev[1])))
+            prev, s_prev = cur, s_cur
+    # Drop consecutive duplicates that appear where the boundaries touch.
+    pts = [q for i, q in enumerate(out) if q != out[i - 1]] if len(out) > 1 else out
+    if len(pts) < 3:
+        return np.zeros((0, 2))
+    return np.array(pts, dtype=np.float64)
+
+
+def overlap_area(a: np.ndarray, b: np.ndarray) -> float:
+    """Area of the intersection of two convex CCW polygons (m2); 0 if they only touch."""
+    inter = convex_clip(a, b)
+    if len(inter) < 3:
+        return 0.0
+    return max(0.0, signed_area(inter))
+
+
+def bbox(v: np.ndarray) -> tuple[float, float, float, float]:
+    """Bounding box ``(xmin, ymin, xmax, ymax)`` of ``v`` (m)."""
+    v = _as_poly(v)
+    lo = v.min(axis=0)
+    hi = v.max(axis=0)
+    return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
+
+
+def characteristic_length(v: np.ndarray) -> float:
+    """Characteristic size of polygon ``v``: sqrt(|area|) (m)."""
+    return math.sqrt(abs(signed_area(v)))
+
+
+def find_overlapping_pairs(polys: Sequence[np.ndarray], tol_area: float) -> list[tuple[int, int]]:
+    """Pairs ``(i, j)``, i < j, of convex CCW polygons whose intersection exceeds ``tol_area`` (m2).
+
+    Sweep and prune: boxes sorted by xmin, each box compared only with those that start
+    before it ends in x, and the y test vectorised; only boxes that overlap with positive
+    area are clipped. About N log N plus the number of x-overlapping boxes, not N^2.
+    """
+    n = len(polys)
+    if n < 2:
+        return []
+    polys = [_as_poly(p) for p in polys]
+    boxes = np.array([bbox(p) for p in polys], dtype=np.float64)
+    order = np.argsort(boxes[:, 0], kind="stable")
+    xmin, ymin, xmax, ymax = boxes[order].T
+    # ends[i]: first sorted index whose box starts at or after box i ends in x.
+    ends = np.searchsorted(xmin, xmax, side="left")
+    pairs: list[tuple[int, int]] = []
+    for i in range(n):
+        lo, hi = i + 1, int(ends[i])
+        if hi <= lo:
+            continue
+        js = np.arange(lo, hi)
+        hit = (ymin[js] < ymax[i]) & (ymax[js] > ymin[i]) & (xmax[js] > xmin[i])
+        for j in js[hit]:
+            a, b = int(order[i]), int(order[j])
+            if overlap_area(polys[a], polys[b]) > tol_area:
+                pairs.append((min(a, b), max(a, b)))
+    pairs.sort()
+    return pairs

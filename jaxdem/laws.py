@@ -1,0 +1,91 @@
+"""Contact laws: equivalent spring stiffness (paper eqs. 3-7) and Mohr-Coulomb.
+
+All functions act elementwise on flat slot arrays (shape (S,)) and are pure
+jax.numpy, so they jit, vmap and differentiate.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from jaxdem.state import OPEN, SLIP, STICK, WALL_ROLLER, Model
+
+
+def intact_stiffness(E, nu):
+    """Intact-rock spring stiffnesses per unit area (kPa), Hamajima-Kawai (eqs. 3-4).
+
+    Returns (kn_i, ks_i) = (E / (1 - nu^2), E / (1 + nu)).
+    """
+    return E / (1.0 - nu**2), E / (1.0 + nu)
+
+
+def equivalent_stiffness(h1, h2, k1_inv, k2_inv, k0_inv):
+    """Equivalent stiffness per unit contact length (kPa/m), eqs. 6-7.
+
+    k = 1 / (h1 / k1 + h2 / k2 + 1 / k0), with h1, h2 (m) the distances from
+    the contact line to the two centroids, k1, k2 the intact stiffnesses (kPa)
+    and k0 the joint stiffness (kPa/m); pass k0_inv = 0 for no joint term.
+    """
+    return 1.0 / (h1 * k1_inv + h2 * k2_inv + k0_inv)
+
+
+def slot_properties(model: Model, geo: dict) -> dict:
+    """Spring stiffness (kN/m per m) and strength of every slot.
+
+    A slot's spring is k * share (share = its part of the effective length Le).
+    Contacts with a rigid wall have no joint term and are bonded (elastic, no
+    strength limit, no opening); roller walls carry no shear.
+    """
+    a, b, j = geo["a"], geo["b"], geo["joint"]
+    wall = (model.kind[a] != 0) | (model.kind[b] != 0)
+    roller = (model.kind[a] == WALL_ROLLER) | (model.kind[b] == WALL_ROLLER)
+    jkn_inv = jnp.where(wall, 0.0, 1.0 / model.joint_kn[j])
+    jks_inv = jnp.where(wall, 0.0, 1.0 / model.joint_ks[j])
+    kn = equivalent_stiffness(geo["h_a"], geo["h_b"], model.kn_inv[a], model.kn_inv[b], jkn_inv)
+    ks = equivalent_stiffness(geo["h_a"], geo["h_b"], model.ks_inv[a], model.ks_inv[b], jks_inv)
+    share = geo["share"]
+    return dict(
+        kn=kn * share,
+        ks=jnp.where(roller, 0.0, ks * share),
+        cohesion=model.joint_c[j] * share,
+        tension=model.joint_t[j] * share,
+        tanphi=model.joint_tanphi[j],
+        bonded=wall,
+    )
+
+
+def mohr_coulomb(fn_trial, fs_trial, prop: dict, failed, active):
+    """Tension cut-off and Mohr-Coulomb slip of trial spring forces.
+
+    Args:
+      fn_trial: normal force, compression positive (kN/m).
+      fs_trial: shear force (kN/m).
+      prop: output of :func:`slot_properties`.
+      failed: the slot has lost cohesion and tensile strength.
+      active: the slot exists.
+    Returns:
+      fn, fs, state (OPEN, STICK or SLIP). A contact opens when its tension
+      exceeds its tensile strength (zero once failed); it slips when
+      |Fs| > c * share + Fn tan(phi) (c zero once failed) and then carries
+      that limit in the direction of the trial force.
+    """
+    bonded = prop["bonded"]
+    t_cap = jnp.where(failed, 0.0, prop["tension"])
+    c = jnp.where(failed, 0.0, prop["cohesion"])
+    opened = ~bonded & (fn_trial < -t_cap)
+    fn = jnp.where(opened | ~active, 0.0, fn_trial)
+    limit = jnp.maximum(c + fn * prop["tanphi"], 0.0)
+    slip = ~bonded & ~opened & (jnp.abs(fs_trial) > limit)
+    fs = jnp.where(opened | ~active, 0.0, jnp.where(slip, jnp.sign(fs_trial) * limit, fs_trial))
+    state = jnp.where(~active | opened, OPEN, jnp.where(slip, SLIP, STICK)).astype(jnp.int32)
+    return fn, fs, state
+
+
+def forces_in_state(fn_trial, fs_trial, prop: dict, failed, state):
+    """Spring forces with a given state (used once a chattering slot is frozen)."""
+    c = jnp.where(failed, 0.0, prop["cohesion"])
+    fn = jnp.where(state == OPEN, 0.0, fn_trial)
+    limit = jnp.maximum(c + fn * prop["tanphi"], 0.0)
+    fs = jnp.where(state == OPEN, 0.0,
+                   jnp.where(state == SLIP, jnp.sign(fs_trial) * limit, fs_trial))
+    return fn, fs

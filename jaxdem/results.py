@@ -1,0 +1,250 @@
+"""Host-side results of a solve: the :class:`Result` object and its JSON form.
+
+``Result.to_dict()`` is the content of ``result.json`` (SPEC section 3). The
+arrays kept for plotting (initial and final block outlines, contact points and
+states, increment histories) live in ``Result.geometry`` and ``Result.history``
+and are not written to JSON.
+
+Sign conventions: displacements in m (x right, y up), rotations in rad
+(counter-clockwise positive), stresses in kPa with compression positive.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+# Contact spring states, as stored in ``geometry["contacts"]["state"]``.
+OPEN, STICK, SLIP = 0, 1, 2
+
+
+@dataclasses.dataclass
+class Result:
+    """What a solve returns: the answer, its status, and the data behind the figures.
+
+    Attributes:
+      scene: scene name.
+      converged: every increment reached equilibrium within the tolerance.
+      stable: no mechanism was found (no block travelled ``max_displacement``).
+      status: ``"converged"``, ``"mechanism"``, ``"iteration_limit"``,
+        ``"capacity_overflow"`` or ``"non_finite"``.
+      message: one human sentence about the outcome.
+      monitors: monitor name -> ``{"displacement": [ux, uy]}`` (m) for a point, or
+        ``{"convergence": c, "along": [a_from, a_to]}`` (m) for a section.
+      blocks: one dict per block: ``id``, ``centroid`` [x, y] (m, initial),
+        ``u`` [ux, uy, rot] (m, m, rad), ``stress`` [sxx, syy, sxy] (kPa,
+        compression positive), ``fixed``.
+      contacts: counts of contact springs in contact: ``total``, ``open``, ``slipping``.
+      bolts: one dict per bolt (empty in explicit-block scenes).
+      stages: per stage ``name``, ``converged``, ``stable``, ``iterations`` (Newton
+        iterations per increment), ``substeps`` (geometry updates per increment),
+        ``residual`` (final relative residual per increment), ``monitors``
+        (monitor name -> value after each increment).
+      moving_blocks: ids of the blocks that kept moving when a mechanism was found.
+      equilibrium: global balance of the final state: ``applied`` [Fx, Fy, M]
+        (kN/m, kN m/m), ``reaction`` (forces from fixed blocks and walls on the
+        free blocks) and ``imbalance`` (relative: |applied + reaction| / |applied|).
+      timing: ``build_s``, ``compile_s``, ``solve_s`` (s).
+      geometry: plotting data, not written to JSON: ``initial_vertices`` and
+        ``final_vertices`` (lists of (n_i, 2) arrays, m), ``fixed`` (bool per
+        block), ``walls`` (list of (2, 2) segments), ``contacts`` with ``points``
+        (m, 2), ``normals`` (m, 2), ``state`` (m,) in {OPEN, STICK, SLIP},
+        ``fn``, ``fs`` (kN/m), ``monitors`` (name -> initial point or section ends).
+      history: per increment: ``stage``, ``step``, ``load_factor`` and
+        ``monitors`` (name -> scalar: |u| for a point, convergence for a section).
+    """
+
+    scene: str
+    converged: bool
+    stable: bool
+    status: str
+    message: str
+    monitors: dict[str, dict[str, Any]]
+    blocks: list[dict[str, Any]]
+    contacts: dict[str, int]
+    bolts: list[dict[str, Any]]
+    stages: list[dict[str, Any]]
+    moving_blocks: list[int]
+    equilibrium: dict[str, Any]
+    timing: dict[str, float]
+    geometry: dict[str, Any] = dataclasses.field(default_factory=dict, repr=False)
+    history: list[dict[str, Any]] = dataclasses.field(default_factory=list, repr=False)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The content of ``result.json``: plain JSON types only."""
+        out = {
+            "scene": self.scene,
+            "converged": self.converged,
+            "stable": self.stable,
+            "status": self.status,
+            "message": self.message,
+            "monitors": self.monitors,
+            "blocks": self.blocks,
+            "contacts": self.contacts,
+            "bolts": self.bolts,
+            "stages": self.stages,
+            "moving_blocks": self.moving_blocks,
+            "equilibrium": self.equilibrium,
+            "timing": self.timing,
+        }
+        return _jsonable(out)
+
+    def write_json(self, path: str | Path) -> Path:
+        """Write ``to_dict()`` to ``path`` (indented JSON); returns the path."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(self.to_dict(), indent=2))
+        return path
+
+
+def _jsonable(x: Any) -> Any:
+    """NumPy scalars and arrays to Python numbers and lists, recursively."""
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, (np.bool_, bool)):
+        return bool(x)
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, (np.floating, float)):
+        return float(x)
+    return x
+
+
+# ---------------------------------------------------------------------------
+# Building a Result from the solver's final state (host, NumPy)
+
+
+def _rotate(v: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], axis=-1)
+
+
+def monitor_values(layout, state) -> dict[str, dict[str, Any]]:
+    """Monitor readings of a state: point displacement or section convergence (m).
+
+    A point monitor follows the material point of the rock block that held it
+    at the start. A section's convergence is the shortening of the distance
+    between its two material points (positive when they approach); ``along``
+    is each end's displacement projected on the section direction from -> to.
+    """
+    cen = np.asarray(state.centroid)
+    rot = np.asarray(state.rot)
+    out = {}
+    for name, m in layout.monitors.items():
+        k = np.asarray(m["blocks"])
+        now = cen[k] + _rotate(m["offsets"], rot[k])
+        disp = now - m["points"]
+        if m["kind"] == "point":
+            out[name] = {"displacement": disp[0].tolist()}
+        else:
+            e = m["points"][1] - m["points"][0]
+            length0 = np.linalg.norm(e)
+            e = e / length0
+            conv = length0 - np.linalg.norm(now[1] - now[0])
+            out[name] = {"convergence": float(conv), "along": [float(disp[0] @ e), float(disp[1] @ e)]}
+    return out
+
+
+def _scalar(reading: dict) -> float:
+    if "convergence" in reading:
+        return reading["convergence"]
+    return float(np.linalg.norm(reading["displacement"]))
+
+
+def block_stress(n_blocks, area, centroid, snap) -> np.ndarray:
+    """Block stresses sigma = -(1/A) sum sym(r (x) F) over contact forces (kPa, compression +).
+
+    r is the contact point relative to the block centroid and F the contact
+    force on the block; the minus sign makes compression positive.
+    Returns (n_blocks, 3): sxx, syy, sxy.
+    """
+    act = snap["active"]
+    p, n = snap["point"][act], snap["normal"][act]
+    # The kernels' face tangent t and outward normal n satisfy n = (t_y, -t_x).
+    t = np.stack([-n[:, 1], n[:, 0]], axis=1)
+    F = snap["fn"][act, None] * n - snap["fs"][act, None] * t
+    out = np.zeros((len(area), 2, 2))
+    for blk, sign in ((snap["a"][act], 1.0), (snap["b"][act], -1.0)):
+        r = p - centroid[blk]
+        outer = sign * r[:, :, None] * F[:, None, :]
+        np.add.at(out, blk, outer)
+    sig = -0.5 * (out + np.transpose(out, (0, 2, 1))) / np.asarray(area)[:, None, None]
+    return np.stack([sig[:n_blocks, 0, 0], sig[:n_blocks, 1, 1], sig[:n_blocks, 0, 1]], axis=1)
+
+
+def build_result(scene, model, layout, state, info, increments, history, timing) -> Result:
+    """Assemble the host Result from the final state and the increment records."""
+    from jaxdem.solver import Status
+
+    nr = layout.n_rock
+    snap = {k: np.asarray(v) for k, v in info["snapshot"].items()}
+    status = Status(int(info["status"]))
+    travel = np.asarray(info["travel"])[:nr]
+    max_disp = float(model.max_displacement)
+    moving = []
+    if status == Status.MECHANISM:
+        moving = [int(i) for i in np.nonzero(travel > 0.1 * max_disp)[0]]
+    stable = status != Status.MECHANISM
+    converged = status == Status.CONVERGED
+    if status == Status.MECHANISM:
+        message = (f"{status.message} Moving blocks: {', '.join(map(str, moving))} "
+                   f"(travel over {max_disp:.3g} m in load step {increments[-1]['step']}).")
+    elif converged:
+        message = f"{status.message} {len(increments)} load steps, stable."
+    else:
+        message = f"{status.message} Stopped in load step {increments[-1]['step']}."
+
+    cen = np.asarray(state.centroid)
+    u = np.asarray(state.u)
+    rot = np.asarray(state.rot)
+    stress = block_stress(nr, np.asarray(model.area), cen, snap)
+    fixed = ~np.asarray(model.free)[:nr]
+    blocks = [
+        {"id": i, "centroid": layout.centroids[i].tolist(), "u": [u[i, 0], u[i, 1], rot[i]],
+         "stress": stress[i].tolist(), "fixed": bool(fixed[i])}
+        for i in range(nr)
+    ]
+    act = snap["active"]
+    st = snap["state"][act]
+    contacts = {"total": int(act.sum()), "open": int((st == OPEN).sum()),
+                "slipping": int((st == SLIP).sum())}
+    bal = {k: np.asarray(v) for k, v in info["balance"].items()}
+    scale = max(float(np.linalg.norm(bal["applied"][:2])), 1e-300)
+    imbalance = float(np.linalg.norm(bal["applied"][:2] + bal["reaction"][:2]) / scale)
+    equilibrium = {"applied": bal["applied"].tolist(), "reaction": bal["reaction"].tolist(),
+                   "imbalance": imbalance}
+    monitors = monitor_values(layout, state)
+    stage = {
+        "name": "loading", "converged": converged, "stable": stable,
+        "iterations": [r["iterations"] for r in increments],
+        "substeps": [r["substeps"] for r in increments],
+        "residual": [r["residual"] for r in increments],
+        "monitors": {name: [_scalar(h["monitors"][name]) for h in history] for name in monitors},
+    }
+    verts = np.asarray(state.verts)
+    nv = np.asarray(model.nv)
+    geometry = {
+        "initial_vertices": layout.polygons,
+        "final_vertices": [verts[i, : nv[i]] for i in range(nr)],
+        "fixed": fixed,
+        "walls": layout.walls,
+        "contacts": {"points": snap["point"][act], "normals": snap["normal"][act], "state": st,
+                     "fn": snap["fn"][act], "fs": snap["fs"][act]},
+        "monitors": {name: m["points"] for name, m in layout.monitors.items()},
+    }
+    hist = [{"stage": h["stage"], "step": h["step"], "load_factor": h["load_factor"],
+             "monitors": {k: _scalar(v) for k, v in h["monitors"].items()}} for h in history]
+    return Result(
+        scene=scene.name, converged=converged, stable=stable, status=status.label,
+        message=message, monitors=monitors, blocks=blocks, contacts=contacts, bolts=[],
+        stages=[stage], moving_blocks=moving, equilibrium=equilibrium, timing=timing,
+        geometry=geometry, history=hist,
+    )

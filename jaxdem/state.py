@@ -1,0 +1,173 @@
+"""Device data: the model (what does not change in a solve) and the state (what does).
+
+Both are frozen dataclasses registered as JAX pytrees. Array fields are leaves;
+sizes and switches that fix the compiled program are static (``meta``) fields,
+so changing one of them recompiles, which is how capacities grow.
+
+Shapes use these letters:
+  N  blocks, rock blocks first, then rigid boundary walls
+  V  vertices per block (padded; ``nv`` holds the real count)
+  P  capacity of the candidate pair list (grows on overflow)
+  J  joints
+  S = P * 2 * V  spring slots: for pair (a, b), a < b, slot (p, 0, v) is vertex v
+     of a against an edge of b and slot (p, 1, v) is vertex v of b against an
+     edge of a. A slot's identity (pair, side, vertex) is its stable key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+# Contact spring states.
+OPEN, STICK, SLIP = 0, 1, 2
+
+# Block kinds: rock blocks carry material stiffness; walls are rigid boundaries.
+ROCK, WALL_FIXED, WALL_ROLLER = 0, 1, 2
+
+
+def _pytree(data: list[str], meta: list[str]):
+    def wrap(cls):
+        return jax.tree_util.register_dataclass(cls, data_fields=data, meta_fields=meta)
+
+    return wrap
+
+
+@_pytree(
+    data=[
+        "nv", "vmask", "free", "kind", "kn_inv", "ks_inv", "area", "radius", "f_ext",
+        "edge_joint", "joint_kn", "joint_ks", "joint_c", "joint_t", "joint_tanphi",
+        "big", "pseudo_mass", "f_ref", "tol", "step_length", "margin", "touch_tol",
+        "max_displacement", "cos_parallel", "corner_share",
+    ],
+    meta=["n_blocks", "n_vertices", "n_big", "use_cells", "cell_capacity", "dense",
+          "max_iterations", "max_substeps"],
+)
+@dataclasses.dataclass(frozen=True)
+class Model:
+    """Constant data of a solve (host-built, device-resident).
+
+    Attributes:
+      nv: (N,) int32 vertex count of each block.
+      vmask: (N, V) bool, real vertices.
+      free: (N,) bool, block has degrees of freedom (not fixed, not a wall).
+      kind: (N,) int32, ROCK, WALL_FIXED or WALL_ROLLER.
+      kn_inv, ks_inv: (N,) 1/kPa, inverse intact stiffness 1/kn_i = (1 - nu^2)/E and
+        1/ks_i = (1 + nu)/E (paper eqs. 3-4); 0 for rigid walls.
+      area: (N,) m2. radius: (N,) m, largest centroid-to-vertex distance.
+      f_ext: (N, 3) external load at load factor 1 (kN/m, kN/m, kN m/m about
+        the centroid): self-weight and boundary tractions.
+      edge_joint: (N, V) int32, joint of the discontinuity each edge lies on, -1 if none.
+      joint_kn, joint_ks: (J,) kPa/m. joint_c, joint_t: (J,) kPa.
+      joint_tanphi: (J,) tan of the friction angle.
+      big: (n_big,) int32, blocks paired with every block in the broad phase
+        (walls and blocks much larger than the median); the rest go in cells.
+      pseudo_mass: (N, 3) diagonal regularisation eps * k_ref * (1, 1, r_g^2):
+        changes the path of the iteration, never a converged equilibrium.
+      f_ref: scalar kN/m, force scale of the convergence test.
+      tol: relative residual tolerance. step_length: m, largest travel of a
+        block in one geometry sub-step. margin: m, contact detection distance
+        (open springs within it may close during a sub-step). touch_tol: m,
+        gap under which faces are in contact. max_displacement: m, travel in
+        one increment beyond which a block is moving (a mechanism).
+      cos_parallel: faces closer than this cosine to anti-parallel are an
+        edge-to-edge contact. corner_share: effective length of a
+        corner-to-edge point as a fraction of its shorter adjacent edge.
+    """
+
+    nv: jax.Array
+    vmask: jax.Array
+    free: jax.Array
+    kind: jax.Array
+    kn_inv: jax.Array
+    ks_inv: jax.Array
+    area: jax.Array
+    radius: jax.Array
+    f_ext: jax.Array
+    edge_joint: jax.Array
+    joint_kn: jax.Array
+    joint_ks: jax.Array
+    joint_c: jax.Array
+    joint_t: jax.Array
+    joint_tanphi: jax.Array
+    big: jax.Array
+    pseudo_mass: jax.Array
+    f_ref: jax.Array
+    tol: jax.Array
+    step_length: jax.Array
+    margin: jax.Array
+    touch_tol: jax.Array
+    max_displacement: jax.Array
+    cos_parallel: jax.Array
+    corner_share: jax.Array
+    n_blocks: int
+    n_vertices: int
+    n_big: int
+    use_cells: bool
+    cell_capacity: int
+    dense: bool
+    max_iterations: int
+    max_substeps: int
+
+
+@_pytree(
+    data=["verts", "centroid", "u", "rot", "pairs", "fs", "fn", "failed", "edge", "cstate",
+          "present"],
+    meta=["capacity"],
+)
+@dataclasses.dataclass(frozen=True)
+class State:
+    """What changes during a solve.
+
+    Attributes:
+      verts: (N, V, 2) m, current vertex positions (padding repeats vertex 0).
+      centroid: (N, 2) m, current centroids.
+      u: (N, 2) m, centroid displacement since the start.
+      rot: (N,) rad, rotation since the start (counter-clockwise positive).
+      pairs: (P, 2) int32 candidate pairs (a < b); empty entries hold (N, N).
+      fs: (P, 2, V) kN/m, shear spring force along the contacted edge's tangent.
+      fn: (P, 2, V) kN/m, normal force (compression positive), for output.
+      failed: (P, 2, V) bool, the contact lost its cohesion and tensile strength.
+      edge: (P, 2, V) int32, contacted edge of the other block.
+      cstate: (P, 2, V) int32, OPEN, STICK or SLIP.
+      present: (P, 2, V) bool, the slot was within the detection margin.
+      capacity: P, static.
+    """
+
+    verts: jax.Array
+    centroid: jax.Array
+    u: jax.Array
+    rot: jax.Array
+    pairs: jax.Array
+    fs: jax.Array
+    fn: jax.Array
+    failed: jax.Array
+    edge: jax.Array
+    cstate: jax.Array
+    present: jax.Array
+    capacity: int
+
+
+def empty_history(n_blocks: int, capacity: int, n_vertices: int, dtype) -> dict:
+    """Contact history arrays of a given capacity, all slots empty."""
+    shape = (capacity, 2, n_vertices)
+    return dict(
+        pairs=jnp.full((capacity, 2), n_blocks, jnp.int32),
+        fs=jnp.zeros(shape, dtype),
+        fn=jnp.zeros(shape, dtype),
+        failed=jnp.zeros(shape, bool),
+        edge=jnp.zeros(shape, jnp.int32),
+        cstate=jnp.zeros(shape, jnp.int32),
+        present=jnp.zeros(shape, bool),
+    )
+
+
+def grow_capacity(state: State, capacity: int) -> State:
+    """The same state with a larger pair capacity (history kept, new slots empty)."""
+    old = state.capacity
+    n_blocks = state.verts.shape[0]
+    new = empty_history(n_blocks, capacity, state.verts.shape[1], state.fs.dtype)
+    fields = {k: v.at[:old].set(getattr(state, k)) for k, v in new.items()}
+    return dataclasses.replace(state, capacity=capacity, **fields)

@@ -1,0 +1,361 @@
+"""The command line: run, check, exit statuses, error messages, progress output."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import types
+
+import numpy as np
+import pytest
+
+from jaxdem.cli import ProgressBar, main
+from jaxdem.results import STICK, Result
+
+# A 1 x 1 m block resting on a fixed 4 x 1 m base; one point monitor at its centroid.
+SCENE = """
+[scene]
+name = "block on base"
+
+[materials.rock]
+E = {E}
+nu = 0.25
+unit_weight = 25.0
+
+[joints.j]
+kn = 1e7
+ks = 1e7
+friction_deg = 30.0
+
+[[blocks]]
+vertices = [[0.0, 0.0], [4.0, 0.0], [4.0, 1.0], [0.0, 1.0]]
+material = "rock"
+fixed = true
+
+[[blocks]]
+vertices = [[1.5, 1.0], [2.5, 1.0], [2.5, 2.0], [1.5, 2.0]]
+material = "rock"
+
+[[monitors]]
+name = "top"
+point = [2.0, 1.5]
+"""
+
+SPEC_KEYS = {
+    "scene",
+    "converged",
+    "stable",
+    "message",
+    "monitors",
+    "blocks",
+    "contacts",
+    "bolts",
+    "stages",
+    "timing",
+}
+
+
+@pytest.fixture
+def scene_file(tmp_path):
+    path = tmp_path / "block_on_base.toml"
+    path.write_text(SCENE.format(E="1e7"))
+    return path
+
+
+def _no_traceback(captured) -> None:
+    assert "Traceback" not in captured.err
+    assert "Traceback" not in captured.out
+
+
+# --------------------------------------------------------------------------- end to end
+
+
+def test_run_end_to_end(scene_file, tmp_path, capsys):
+    out = tmp_path / "out"
+    status = main(["run", str(scene_file), "--out", str(out)])
+    captured = capsys.readouterr()
+    assert status == 0, captured.err
+    data = json.loads((out / "result.json").read_text())
+    assert SPEC_KEYS <= set(data)
+    assert data["stable"] is True
+    assert "top" in data["monitors"]
+    assert (out / "blocks.png").stat().st_size > 0
+    assert (out / "monitors.png").stat().st_size > 0
+    assert "2 blocks" in captured.out
+    assert "step" in captured.err  # the progress lines
+    _no_traceback(captured)
+
+
+def test_check_writes_figure(scene_file, tmp_path, capsys):
+    out = tmp_path / "chk"
+    assert main(["check", str(scene_file), "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    assert captured.out.startswith("OK: 2 blocks, 1 joints")
+    assert (out / "check.png").stat().st_size > 0
+
+
+# --------------------------------------------------------------------------- invalid input: 2
+
+
+@pytest.mark.parametrize("command", ["run", "check"])
+def test_invalid_scene_exits_2_with_field_path(tmp_path, capsys, command):
+    bad = tmp_path / "bad.toml"
+    bad.write_text(SCENE.format(E="-1"))
+    assert main([command, str(bad), "--out", str(tmp_path / "o")]) == 2
+    captured = capsys.readouterr()
+    assert captured.err.startswith("error: ")
+    assert "materials.rock.E" in captured.err
+    _no_traceback(captured)
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize(
+    ("override", "field"),
+    [
+        ("materials.rock.E=-5", "materials.rock.E"),
+        ("nope.x=1", "nope"),
+        ("materials.rock.E", "--set"),
+        ("materials.rock.E=abc", "--set"),
+    ],
+)
+def test_bad_set_exits_2(scene_file, tmp_path, capsys, override, field):
+    status = main(["run", str(scene_file), "--out", str(tmp_path / "o"), "--set", override])
+    assert status == 2
+    captured = capsys.readouterr()
+    assert "error: " in captured.err and field in captured.err
+    _no_traceback(captured)
+
+
+def test_missing_and_unreadable_files_exit_2(tmp_path, capsys):
+    assert main(["run", str(tmp_path / "missing.toml")]) == 2
+    garbage = tmp_path / "garbage.toml"
+    garbage.write_text("[scene\nname = ")
+    assert main(["check", str(garbage)]) == 2
+    captured = capsys.readouterr()
+    assert captured.err.count("error: ") == 2
+    assert "missing.toml" in captured.err and "garbage.toml" in captured.err
+    _no_traceback(captured)
+
+
+def test_usage_errors_and_help(capsys):
+    assert main([]) == 2
+    assert main(["run"]) == 2  # argparse: SCENE.toml is required
+    assert main(["--help"]) == 0
+    assert "demo" in capsys.readouterr().out
+
+
+def test_help_does_not_import_plotting():
+    # jaxdem/__init__.py imports jax (float64 switch); the command line adds nothing heavier.
+    code = (
+        "import sys\n"
+        "from jaxdem.cli import main\n"
+        "assert main(['--help']) == 0\n"
+        "assert 'matplotlib' not in sys.modules and 'jaxdem.plots' not in sys.modules\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, capture_output=True)
+
+
+def test_python_dash_m(tmp_path):
+    proc = subprocess.run(
+        [sys.executable, "-m", "jaxdem", "run", str(tmp_path / "nope.toml")],
+        capture_output=True,
+        text=True,
+    )
+    assert proc.returncode == 2
+    assert proc.stderr.startswith("error: ") and "Traceback" not in proc.stderr
+
+
+# --------------------------------------------------------------------------- solver outcomes
+
+
+def _synthetic_result(scene, status: str) -> Result:
+    """A Result for ``scene`` as the solver would return it with this status."""
+    initial = [np.asarray(b.vertices) for b in scene.blocks]
+    moving = [1] if status == "mechanism" else []
+    u = np.array([[0.0, 0.0, 0.0], [0.3 if moving else 1e-4, -1e-4, 0.0]])
+    return Result(
+        scene=scene.name,
+        converged=status in ("converged", "mechanism"),
+        stable=not moving,
+        status=status,
+        message=f"synthetic {status}",
+        monitors={"top": {"displacement": u[1, :2].tolist()}},
+        blocks=[
+            {
+                "id": i,
+                "centroid": v.mean(axis=0).tolist(),
+                "u": u[i].tolist(),
+                "stress": [0.0, 0.0, 0.0],
+                "fixed": bool(b.fixed),
+            }
+            for i, (v, b) in enumerate(zip(initial, scene.blocks, strict=True))
+        ],
+        contacts={"total": 2, "open": 0, "slipping": 0},
+        bolts=[],
+        stages=[
+            {
+                "name": "load",
+                "converged": True,
+                "stable": not moving,
+                "iterations": [3, 2],
+                "monitors": {"top": [1e-4, 1.4e-4]},
+            }
+        ],
+        moving_blocks=moving,
+        equilibrium={},
+        timing={"build_s": 0.01, "compile_s": 0.5, "solve_s": 0.02},
+        geometry={
+            "initial_vertices": initial,
+            "final_vertices": [v + d[:2] for v, d in zip(initial, u, strict=True)],
+            "fixed": [b.fixed for b in scene.blocks],
+            "walls": [],
+            "contacts": {
+                "points": np.array([[1.5, 1.0], [2.5, 1.0]]),
+                "state": np.array([STICK, STICK]),
+            },
+            "monitors": {"top": np.array([2.0, 1.5])},
+        },
+        history=[
+            {"stage": "load", "step": k, "load_factor": k / 2, "monitors": {"top": 7e-5 * k}}
+            for k in (1, 2)
+        ],
+    )
+
+
+@pytest.fixture
+def fake_solver(monkeypatch):
+    """Replace ``jaxdem.solver.solve``; returns a setter for the status to answer with.
+
+    Where the real solver module is not importable a stand-in module is used, so
+    that these tests check the command line alone.
+    """
+    try:
+        from jaxdem import solver
+    except ImportError:
+        import jaxdem
+
+        solver = types.ModuleType("jaxdem.solver")
+        monkeypatch.setitem(sys.modules, "jaxdem.solver", solver)
+        monkeypatch.setattr(jaxdem, "solver", solver, raising=False)
+    answer = {"status": "converged"}
+
+    def solve(scene, set=None, progress=None):
+        for step in (1, 2):
+            if progress is not None:
+                progress(
+                    {
+                        "stage": "load",
+                        "step": step,
+                        "n_steps": 2,
+                        "status": "converged",
+                        "iterations": 3,
+                        "substeps": 1,
+                        "residual": 1e-12,
+                    }
+                )
+        return _synthetic_result(scene, answer["status"])
+
+    monkeypatch.setattr(solver, "solve", solve, raising=False)
+    return lambda status: answer.update(status=status)
+
+
+@pytest.mark.parametrize(
+    ("status", "code"),
+    [
+        ("converged", 0),
+        ("mechanism", 0),
+        ("iteration_limit", 3),
+        ("non_finite", 3),
+        ("capacity_overflow", 3),
+    ],
+)
+def test_exit_status_follows_solver_status(fake_solver, scene_file, tmp_path, capsys, status, code):
+    fake_solver(status)
+    out = tmp_path / "o"
+    assert main(["run", str(scene_file), "--out", str(out)]) == code
+    captured = capsys.readouterr()
+    # result.json and figures are written in every case, to look at what went wrong
+    data = json.loads((out / "result.json").read_text())
+    assert SPEC_KEYS <= set(data) and data["status"] == status
+    assert (out / "blocks.png").is_file() and (out / "monitors.png").is_file()
+    assert f"status: {status}" in captured.out
+    if status == "mechanism":
+        assert "moving blocks: 1" in captured.out
+    _no_traceback(captured)
+
+
+def test_run_prints_progress_monitors_and_times(fake_solver, scene_file, tmp_path, capsys):
+    assert (
+        main(
+            [
+                "run",
+                str(scene_file),
+                "--out",
+                str(tmp_path / "o"),
+                "--set",
+                "joints.j.kn=2e7",
+                "materials.rock.nu=0.3",
+            ]
+        )
+        == 0
+    )
+    captured = capsys.readouterr()
+    lines = [ln for ln in captured.err.splitlines() if ln.startswith("stage ")]
+    assert len(lines) == 2  # stderr is not a terminal: one line per increment
+    assert "step 2/2" in lines[-1] and "res 1.0e-12" in lines[-1]
+    assert "top" in captured.out and "uy (mm)" in captured.out
+    assert "compile 0.50 s" in captured.out
+    assert "result.json" in captured.out and "blocks.png" in captured.out
+
+
+def test_default_out_dir(fake_solver, scene_file, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(["run", str(scene_file)]) == 0
+    assert (tmp_path / "out" / "block_on_base" / "result.json").is_file()
+
+
+# --------------------------------------------------------------------------- progress bar
+
+
+class _Stream:
+    def __init__(self, tty: bool):
+        self.text, self.tty = "", tty
+
+    def write(self, s: str) -> None:
+        self.text += s
+
+    def flush(self) -> None:
+        pass
+
+    def isatty(self) -> bool:
+        return self.tty
+
+
+def _event(stage: str, step: int, n_steps: int = 10) -> dict:
+    return {
+        "stage": stage,
+        "step": step,
+        "n_steps": n_steps,
+        "status": "converged",
+        "iterations": 12,
+        "substeps": 1,
+        "residual": 3.1e-11,
+    }
+
+
+def test_progress_bar_format():
+    bar = ProgressBar(n_stages=2, stream=_Stream(False), width=10)
+    assert (
+        bar.format(_event("dig", 3)) == "stage 1/2 dig [###-------] step 3/10  it 12  res 3.1e-11"
+    )
+    assert bar.format(_event("bolt", 10)).startswith("stage 2/2 bolt [##########] step 10/10")
+
+
+def test_progress_bar_terminal_redraws_in_place():
+    stream = _Stream(True)
+    with ProgressBar(stream=stream) as bar:
+        bar(_event("a", 1, 2))
+        bar(_event("a", 2, 2))
+    assert stream.text.count("\r") == 2 and stream.text.endswith("\n")
+    assert stream.text.count("\n") == 1

@@ -1,0 +1,195 @@
+"""Figures: blocks.png, monitors.png and check.png from hand-built Results and scenes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from jaxdem import plots
+from jaxdem.results import OPEN, SLIP, STICK, Result
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def _square(x0: float, y0: float, side: float) -> np.ndarray:
+    return np.array([[x0, y0], [x0 + side, y0], [x0 + side, y0 + side], [x0, y0 + side]])
+
+
+def make_result(moving: bool = False) -> Result:
+    """Three squares (0 fixed, 1 and 2 resting on it), contacts in every state,
+    a point and a section monitor, four increments over two stages."""
+    initial = [_square(0.0, 0.0, 2.0), _square(0.0, 2.0, 1.0), _square(1.0, 2.0, 1.0)]
+    u = np.array([[0.0, 0.0, 0.0], [1e-3, -2e-3, 1e-4], [3e-4, -1e-3, 0.0]])
+    if moving:
+        u[2] = [0.5, -0.1, 0.2]
+    final = [v + ui[:2] for v, ui in zip(initial, u, strict=True)]
+    points = np.array([[0.0, 2.0], [1.0, 2.0], [1.0, 2.0], [2.0, 2.0], [1.0, 2.5]])
+    state = np.array([STICK, SLIP, STICK, OPEN, SLIP])
+    history = [
+        {
+            "stage": stage,
+            "step": step,
+            "load_factor": step / 2,
+            "monitors": {"crown": 1e-3 * (2 * k + step), "s1": 4e-4 * (2 * k + step)},
+        }
+        for k, stage in enumerate(["gravity", "excavate"])
+        for step in (1, 2)
+    ]
+    return Result(
+        scene="three squares",
+        converged=True,
+        stable=not moving,
+        status="mechanism" if moving else "converged",
+        message="synthetic",
+        monitors={
+            "crown": {"displacement": [1e-3, -2e-3]},
+            "s1": {"convergence": 1.6e-3, "along": [8e-4, -8e-4]},
+        },
+        blocks=[
+            {
+                "id": i,
+                "centroid": v.mean(axis=0).tolist(),
+                "u": u[i].tolist(),
+                "stress": [0.0, 0.0, 0.0],
+                "fixed": i == 0,
+            }
+            for i, v in enumerate(initial)
+        ],
+        contacts={"total": 5, "open": 1, "slipping": 2},
+        bolts=[],
+        stages=[],
+        moving_blocks=[2] if moving else [],
+        equilibrium={},
+        timing={"build_s": 0.0, "compile_s": 0.0, "solve_s": 0.0},
+        geometry={
+            "initial_vertices": initial,
+            "final_vertices": final,
+            "fixed": [True, False, False],
+            "walls": [np.array([[-0.5, 0.0], [2.5, 0.0]])],
+            "contacts": {
+                "points": points,
+                "normals": np.tile([0.0, 1.0], (5, 1)),
+                "state": state,
+                "fn": np.ones(5),
+                "fs": np.zeros(5),
+            },
+            "monitors": {"crown": np.array([0.5, 2.5]), "s1": np.array([[0.0, 2.5], [2.0, 2.5]])},
+        },
+        history=history,
+    )
+
+
+def _assert_png(path) -> None:
+    assert path.is_file()
+    data = path.read_bytes()
+    assert data[:8] == PNG_MAGIC
+    assert len(data) > 5000  # a drawn figure, not an empty canvas
+
+
+@pytest.mark.parametrize("moving", [False, True], ids=["stable", "mechanism"])
+def test_write_figures_writes_blocks_and_monitors(tmp_path, moving):
+    paths = plots.write_figures(make_result(moving), tmp_path / "figs")
+    assert [p.name for p in paths] == ["blocks.png", "monitors.png"]
+    for p in paths:
+        _assert_png(p)
+
+
+def test_no_monitors_gives_no_history_figure(tmp_path):
+    result = make_result()
+    result.monitors = {}
+    result.history = [dict(h, monitors={}) for h in result.history]
+    result.geometry["monitors"] = {}
+    assert plots.plot_monitor_history(result, tmp_path / "m.png") is None
+    assert not (tmp_path / "m.png").exists()
+    paths = plots.write_figures(result, tmp_path)
+    assert [p.name for p in paths] == ["blocks.png"]
+
+
+def test_plot_blocks_without_contacts_or_motion(tmp_path):
+    result = make_result()
+    result.geometry["contacts"] = {}
+    result.geometry["walls"] = []
+    for b in result.blocks:
+        b["u"] = [0.0, 0.0, 0.0]
+    _assert_png(plots.plot_blocks(result, tmp_path / "b.png", magnification=10.0))
+
+
+def test_status_text():
+    assert plots._status_text(make_result()) == "stable"
+    assert plots._status_text(make_result(moving=True)) == "UNSTABLE: block 2 moving"
+    result = make_result(moving=True)
+    result.moving_blocks = [3, 7]
+    assert plots._status_text(result) == "UNSTABLE: blocks 3, 7 moving"
+    result.status = "iteration_limit"
+    assert "iteration_limit" in plots._status_text(result)
+
+
+@pytest.mark.parametrize(
+    ("size", "u_max", "expected"),
+    [
+        (4.0, 2e-3, 100.0),
+        (10.0, 1e-3, 500.0),
+        (10.0, 3e-3, 200.0),
+        (10.0, 2.0, 1.0),
+        (10.0, 0.0, 1.0),
+    ],
+)
+def test_nice_magnification(size, u_max, expected):
+    assert plots.nice_magnification(size, u_max) == pytest.approx(expected)
+
+
+def test_largest_per_cell_keeps_one_per_cell():
+    pts = np.array([[0.1, 0.1], [0.2, 0.2], [0.9, 0.9], [0.95, 0.95]])
+    keep = plots._largest_per_cell(pts, np.array([1.0, 3.0, 2.0, 0.5]), 2)
+    assert keep.tolist() == [False, True, True, False]
+
+
+def test_many_blocks(tmp_path):
+    n = 60  # 3,600 blocks: collections, thinned arrows
+    initial = [_square(i, j, 1.0) for i in range(n) for j in range(n)]
+    c = np.array([v.mean(axis=0) for v in initial])
+    u = np.zeros((len(initial), 3))
+    u[:, 1] = -1e-3 * np.exp(-((c[:, 0] - n / 2) ** 2) / n)
+    result = make_result()
+    result.blocks = [
+        {"id": k, "centroid": c[k].tolist(), "u": u[k].tolist()} for k in range(len(initial))
+    ]
+    result.moving_blocks = []
+    result.geometry.update(
+        initial_vertices=initial,
+        final_vertices=[v + d[:2] for v, d in zip(initial, u, strict=True)],
+        fixed=[j == 0 for i in range(n) for j in range(n)],
+        contacts={"points": c, "state": np.arange(len(c)) % 3},
+    )
+    _assert_png(plots.plot_blocks(result, tmp_path / "many.png"))
+
+
+def _scene():
+    from jaxdem.scene import parse_scene
+
+    return parse_scene(
+        {
+            "scene": {"name": "check me"},
+            "materials": {
+                "rock": {"E": 1e7, "nu": 0.25, "unit_weight": 25.0},
+                "soft": {"E": 1e6, "nu": 0.3, "unit_weight": 20.0},
+            },
+            "joints": {"j": {"kn": 1e7, "ks": 1e7, "friction_deg": 30.0}},
+            "blocks": [
+                {"vertices": [[0, 0], [4, 0], [4, 1], [0, 1]], "material": "rock", "fixed": True},
+                {"vertices": [[1, 1], [2, 1], [2, 2], [1, 2]], "material": "rock"},
+                {"vertices": [[2, 1], [3, 1], [3, 2], [2, 2]], "material": "soft"},
+            ],
+            "discontinuities": [{"from": [2, 1], "to": [2, 2], "joint": "j"}],
+            "boundaries": [{"side": "bottom", "condition": "fixed"}],
+            "monitors": [
+                {"name": "top", "point": [1.5, 1.5]},
+                {"name": "across", "from": [1.2, 1.5], "to": [2.8, 1.5]},
+            ],
+        }
+    )
+
+
+def test_plot_scene_check(tmp_path):
+    path = plots.plot_scene_check(_scene(), tmp_path / "check.png")
+    _assert_png(path)

@@ -1,0 +1,639 @@
+"""Scene files: loading, defaults, every refusal, overrides (jaxdem.scene)."""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from jaxdem.scene import (
+    Joint,
+    Scene,
+    SceneError,
+    SolverSettings,
+    apply_overrides,
+    load_scene,
+    parse_scene,
+    parse_set_arguments,
+)
+
+VALID_TOML = """
+[scene]
+name = "two blocks on a base"
+description = "two unit squares stacked on a fixed base"
+
+[materials.rock]
+E = 2.0e7
+nu = 0.25
+unit_weight = 26.0
+
+[joints.j]
+kn = 1.0e6
+ks = 5.0e5
+friction_deg = 30.0
+
+[[blocks]]
+vertices = [[0.0, 0.0], [4.0, 0.0], [4.0, 1.0], [0.0, 1.0]]
+material = "rock"
+fixed = true
+
+[[blocks]]
+vertices = [[1.0, 1.0], [2.0, 1.0], [2.0, 2.0], [1.0, 2.0]]
+material = "rock"
+
+[[blocks]]
+vertices = [[1.0, 2.0], [2.0, 2.0], [2.0, 3.0], [1.0, 3.0]]
+material = "rock"
+
+[[discontinuities]]
+from = [0.0, 1.0]
+to = [4.0, 1.0]
+joint = "j"
+
+[[boundaries]]
+side = "bottom"
+condition = "fixed"
+
+[[boundaries]]
+from = [1.0, 3.0]
+to = [2.0, 3.0]
+condition = "traction"
+traction = [0.0, -100.0]
+
+[[monitors]]
+name = "top"
+point = [1.5, 3.0]
+
+[[monitors]]
+name = "stack"
+from = [1.5, 1.5]
+to = [1.5, 2.5]
+"""
+
+
+def valid_scene_dict() -> dict:
+    """The valid explicit-block scene as a fresh dict (mutate freely)."""
+    return {
+        "scene": {
+            "name": "two blocks on a base",
+            "description": "two unit squares stacked on a fixed base",
+        },
+        "materials": {"rock": {"E": 2.0e7, "nu": 0.25, "unit_weight": 26.0}},
+        "joints": {"j": {"kn": 1.0e6, "ks": 5.0e5, "friction_deg": 30.0}},
+        "blocks": [
+            {
+                "vertices": [[0.0, 0.0], [4.0, 0.0], [4.0, 1.0], [0.0, 1.0]],
+                "material": "rock",
+                "fixed": True,
+            },
+            {"vertices": [[1.0, 1.0], [2.0, 1.0], [2.0, 2.0], [1.0, 2.0]], "material": "rock"},
+            {"vertices": [[1.0, 2.0], [2.0, 2.0], [2.0, 3.0], [1.0, 3.0]], "material": "rock"},
+        ],
+        "discontinuities": [{"from": [0.0, 1.0], "to": [4.0, 1.0], "joint": "j"}],
+        "boundaries": [
+            {"side": "bottom", "condition": "fixed"},
+            {
+                "from": [1.0, 3.0],
+                "to": [2.0, 3.0],
+                "condition": "traction",
+                "traction": [0.0, -100.0],
+            },
+        ],
+        "monitors": [
+            {"name": "top", "point": [1.5, 3.0]},
+            {"name": "stack", "from": [1.5, 1.5], "to": [1.5, 2.5]},
+        ],
+    }
+
+
+def _set(data: dict, dotted: str, value) -> None:
+    *head, last = dotted.split(".")
+    node = data
+    for k in head:
+        node = node[int(k)] if isinstance(node, list) else node[k]
+    if isinstance(node, list):
+        node[int(last)] = value
+    else:
+        node[last] = value
+
+
+def _del(data: dict, dotted: str) -> None:
+    *head, last = dotted.split(".")
+    node = data
+    for k in head:
+        node = node[int(k)] if isinstance(node, list) else node[k]
+    del node[int(last) if isinstance(node, list) else last]
+
+
+def setting(dotted: str, value) -> Callable[[dict], None]:
+    return lambda d: _set(d, dotted, value)
+
+
+def deleting(dotted: str) -> Callable[[dict], None]:
+    return lambda d: _del(d, dotted)
+
+
+def _load_mutated(mutation: Callable[[dict], None]) -> Scene:
+    data = valid_scene_dict()
+    mutation(data)
+    return parse_scene(data)
+
+
+# --------------------------------------------------------------------------- valid scene
+
+
+def test_valid_scene_loads_with_defaults(tmp_path: Path):
+    path = tmp_path / "scene.toml"
+    path.write_text(VALID_TOML)
+    scene = load_scene(path)
+    assert scene.source == str(path)
+    assert scene.name == "two blocks on a base"
+    assert scene.default_joint == "j"  # first joint in the file
+    assert scene.solver == SolverSettings()
+    assert scene.solver.load_steps == 5 and isinstance(scene.solver.load_steps, int)
+    assert scene.solver.max_displacement is None
+    rock = scene.materials["rock"]
+    assert (rock.E, rock.nu, rock.unit_weight) == (2.0e7, 0.25, 26.0)
+    assert (rock.cohesion, rock.friction_deg, rock.tensile_strength) == (0.0, 45.0, 0.0)
+    assert scene.joints["j"] == Joint(name="j", kn=1.0e6, ks=5.0e5, friction_deg=30.0)
+    assert len(scene.blocks) == 3
+    assert scene.blocks[0].fixed and not scene.blocks[1].fixed
+    assert scene.blocks[1].vertices.dtype == np.float64
+    assert scene.blocks[1].vertices.shape == (4, 2)
+    assert not scene.blocks[1].vertices.flags.writeable
+    assert scene.discontinuities[0].joint == "j"
+    bottom, top = scene.boundaries
+    assert bottom.side == "bottom" and bottom.condition == "fixed"
+    np.testing.assert_array_equal(bottom.start, [0.0, 0.0])
+    np.testing.assert_array_equal(bottom.end, [4.0, 0.0])
+    np.testing.assert_array_equal(bottom.traction, [0.0, 0.0])
+    assert top.side is None
+    np.testing.assert_array_equal(top.traction, [0.0, -100.0])
+    point, section = scene.monitors
+    assert point.kind == "point" and point.start is None
+    np.testing.assert_array_equal(point.point, [1.5, 3.0])
+    assert section.kind == "section" and section.point is None
+    np.testing.assert_array_equal(section.end, [1.5, 2.5])
+
+
+def test_dict_and_text_and_file_agree(tmp_path: Path):
+    path = tmp_path / "scene.toml"
+    path.write_text(VALID_TOML)
+    a = load_scene(str(path))
+    b = load_scene(valid_scene_dict())
+    c = load_scene(VALID_TOML)
+    assert a.data == b.data == c.data
+    assert b.source == "<dict>"
+
+
+def test_side_segments_from_bounding_box():
+    data = valid_scene_dict()
+    data["boundaries"] = [
+        {"side": s, "condition": "roller"} for s in ("left", "right", "bottom", "top")
+    ]
+    scene = parse_scene(data)
+    ends = {b.side: (tuple(b.start), tuple(b.end)) for b in scene.boundaries}
+    assert ends == {
+        "left": ((0.0, 0.0), (0.0, 3.0)),
+        "right": ((4.0, 0.0), (4.0, 3.0)),
+        "bottom": ((0.0, 0.0), (4.0, 0.0)),
+        "top": ((0.0, 3.0), (4.0, 3.0)),
+    }
+
+
+def test_explicit_defaults_and_extensions():
+    data = valid_scene_dict()
+    data["solver"] = {
+        "load_steps": 10.0,  # integral float accepted for an int field
+        "tolerance": 1e-8,
+        "max_iterations": 100,
+        "max_displacement": 0.5,
+        "dtype": "float32",
+        "regularization": 1e-4,
+        "step_length": 0.01,
+    }
+    data["joints"]["set1"] = {
+        "kn": 2e6,
+        "ks": 1e6,
+        "friction_deg": 35,
+        "dip_deg": 60,
+        "spacing": 0.5,
+        "origin": [0, 0],
+        "persistence": 1.0,
+        "gap": 0.0,
+    }
+    data["scene"]["default_joint"] = "set1"
+    scene = parse_scene(data)
+    assert scene.solver.load_steps == 10 and isinstance(scene.solver.load_steps, int)
+    assert scene.solver.dtype == "float32"
+    assert scene.solver.step_length == 0.01
+    assert scene.default_joint == "set1"
+    s1 = scene.joints["set1"]
+    assert (s1.dip_deg, s1.spacing, s1.origin, s1.persistence) == (60.0, 0.5, (0.0, 0.0), 1.0)
+    assert isinstance(s1.friction_deg, float)
+
+
+def test_single_block_needs_no_joint():
+    data = valid_scene_dict()
+    del data["joints"]
+    del data["discontinuities"]
+    data["blocks"] = data["blocks"][:1]
+    data["monitors"] = [{"name": "m", "point": [2.0, 0.5]}]
+    data["boundaries"] = data["boundaries"][:1]
+    scene = parse_scene(data)
+    assert scene.default_joint == "" and scene.joints == {}
+
+
+def test_discontinuity_joint_defaults_to_default_joint():
+    data = valid_scene_dict()
+    del data["discontinuities"][0]["joint"]
+    assert parse_scene(data).discontinuities[0].joint == "j"
+
+
+# --------------------------------------------------------------------------- refusals
+
+REFUSALS = [
+    # (id, mutation, expected path at the start of the message, words in the message)
+    # required fields
+    ("no scene", deleting("scene"), "scene.name", "required"),
+    ("no name", deleting("scene.name"), "scene.name", "required"),
+    ("no blocks", deleting("blocks"), "blocks", "at least one block"),
+    ("empty blocks", setting("blocks", []), "blocks", "at least one block"),
+    ("unknown material", setting("blocks.1.material", "granite"), "blocks.1.material", "granite"),
+    ("no material", deleting("blocks.1.material"), "blocks.1.material", "required"),
+    ("no vertices", deleting("blocks.1.vertices"), "blocks.1.vertices", "required"),
+    ("no E", deleting("materials.rock.E"), "materials.rock.E", "required"),
+    ("no nu", deleting("materials.rock.nu"), "materials.rock.nu", "required"),
+    ("no gamma", deleting("materials.rock.unit_weight"), "materials.rock.unit_weight", "required"),
+    ("no kn", deleting("joints.j.kn"), "joints.j.kn", "required"),
+    ("no ks", deleting("joints.j.ks"), "joints.j.ks", "required"),
+    ("no phi", deleting("joints.j.friction_deg"), "joints.j.friction_deg", "required"),
+    ("bad default", setting("scene.default_joint", "nope"), "scene.default_joint", "nope"),
+    (
+        "no joints",
+        lambda d: (d.pop("joints"), d.pop("discontinuities")),
+        "joints",
+        "at least one joint is needed for contacts between blocks",
+    ),
+    # unknown and unsupported
+    ("unknown section", setting("foo", {}), "foo", "unknown section"),
+    ("unknown field", setting("materials.rock.G", 1.0), "materials.rock.G", "allowed: E, nu"),
+    ("unknown scene field", setting("scene.author", "x"), "scene.author", "allowed"),
+    ("unknown block field", setting("blocks.0.colour", "red"), "blocks.0.colour", "allowed"),
+    ("unknown solver field", setting("solver", {"steps": 3}), "solver.steps", "allowed"),
+    ("in_situ", setting("in_situ", {"k0": 0.5}), "in_situ", "not supported in this version"),
+    ("domain", setting("domain", {}), "domain", "not supported"),
+    ("excavations", setting("excavations", []), "excavations", "not supported"),
+    ("bolts", setting("bolts", []), "bolts", "not supported"),
+    ("supports", setting("supports", []), "supports", "not supported"),
+    ("water", setting("water", {}), "water", "not supported"),
+    ("stages", setting("stages", []), "stages", "not supported"),
+    # types
+    ("E string", setting("materials.rock.E", "2e7"), "materials.rock.E", "must be a number"),
+    ("E bool", setting("materials.rock.E", True), "materials.rock.E", "must be a number"),
+    ("E nan", setting("materials.rock.E", math.nan), "materials.rock.E", "finite"),
+    ("kn inf", setting("joints.j.kn", math.inf), "joints.j.kn", "finite"),
+    ("vertex nan", setting("blocks.1.vertices.2.0", math.nan), "blocks.1.vertices.2.0", "finite"),
+    ("E huge", setting("materials.rock.E", 1e16), "materials.rock.E", "out of range"),
+    ("coord huge", setting("blocks.1.vertices.2", [1e20, 2.0]), "blocks.1.vertices.2.0", "range"),
+    ("name type", setting("scene.name", 3), "scene.name", "must be a string"),
+    ("material type", setting("blocks.1.material", 1), "blocks.1.material", "must be a string"),
+    ("fixed type", setting("blocks.0.fixed", "yes"), "blocks.0.fixed", "true or false"),
+    ("point short", setting("blocks.1.vertices.0", [1.0]), "blocks.1.vertices.0", "[x, y]"),
+    ("point str", setting("blocks.1.vertices.0", "1,1"), "blocks.1.vertices.0", "[x, y]"),
+    ("vertices type", setting("blocks.1.vertices", 5), "blocks.1.vertices", "list of points"),
+    ("materials type", setting("materials", [1]), "materials", "table"),
+    ("material type", setting("materials.rock", 3.0), "materials.rock", "table"),
+    ("blocks type", setting("blocks", {"a": 1}), "blocks", "array of tables"),
+    # ranges
+    ("E <= 0", setting("materials.rock.E", -1), "materials.rock.E", "must be > 0 (got -1)"),
+    ("E zero", setting("materials.rock.E", 0.0), "materials.rock.E", "> 0"),
+    ("nu 0.5", setting("materials.rock.nu", 0.5), "materials.rock.nu", "[0, 0.5)"),
+    ("nu < 0", setting("materials.rock.nu", -0.1), "materials.rock.nu", "[0, 0.5)"),
+    ("gamma < 0", setting("materials.rock.unit_weight", -1.0), "materials.rock.unit_weight", ">="),
+    ("c < 0", setting("materials.rock.cohesion", -1.0), "materials.rock.cohesion", ">= 0"),
+    ("T < 0", setting("joints.j.tensile_strength", -1.0), "joints.j.tensile_strength", ">= 0"),
+    ("phi 90", setting("joints.j.friction_deg", 90.0), "joints.j.friction_deg", "[0, 90)"),
+    ("phi < 0", setting("materials.rock.friction_deg", -5), "materials.rock.friction_deg", "[0"),
+    ("kn 0", setting("joints.j.kn", 0.0), "joints.j.kn", "> 0"),
+    ("ks < 0", setting("joints.j.ks", -1.0), "joints.j.ks", "> 0"),
+    ("load_steps 0", setting("solver", {"load_steps": 0}), "solver.load_steps", ">= 1"),
+    ("load_steps 2.5", setting("solver", {"load_steps": 2.5}), "solver.load_steps", "integer"),
+    ("tolerance 1", setting("solver", {"tolerance": 1.0}), "solver.tolerance", "(0, 1)"),
+    ("tolerance 0", setting("solver", {"tolerance": 0.0}), "solver.tolerance", "(0, 1)"),
+    ("max_it 0", setting("solver", {"max_iterations": 0}), "solver.max_iterations", ">= 1"),
+    ("max_disp 0", setting("solver", {"max_displacement": 0}), "solver.max_displacement", "> 0"),
+    ("reg 1", setting("solver", {"regularization": 1.0}), "solver.regularization", "(0, 1)"),
+    ("step 0", setting("solver", {"step_length": 0.0}), "solver.step_length", "> 0"),
+    ("dtype", setting("solver", {"dtype": "float16"}), "solver.dtype", "float64, float32"),
+    ("spacing 0", setting("joints.j.spacing", 0.0), "joints.j.spacing", "> 0"),
+    ("persistence 0", setting("joints.j.persistence", 0.0), "joints.j.persistence", "(0, 1]"),
+    ("persistence >1", setting("joints.j.persistence", 1.5), "joints.j.persistence", "(0, 1]"),
+    ("gap < 0", setting("joints.j.gap", -0.1), "joints.j.gap", ">= 0"),
+    ("origin", setting("joints.j.origin", [0.0]), "joints.j.origin", "[x, y]"),
+    # polygons
+    ("2 points", setting("blocks.1.vertices", [[1, 1], [2, 1]]), "blocks.1.vertices", "3 points"),
+    (
+        "repeated",
+        setting("blocks.1.vertices", [[1, 1], [2, 1], [2, 2], [2, 2], [1, 2]]),
+        "blocks.1.vertices",
+        "repeated point",
+    ),
+    (
+        "bow-tie",
+        setting("blocks.1.vertices", [[1, 1], [2, 2], [2, 1], [1, 2]]),
+        "blocks.1.vertices",
+        "self-intersecting",
+    ),
+    (
+        "zero area",
+        setting("blocks.1.vertices", [[1, 1], [2, 1], [3, 1]]),
+        "blocks.1.vertices",
+        "degenerate",
+    ),
+    (
+        "near-zero area",
+        setting("blocks.1.vertices", [[1, 1], [2, 1], [3, 1 + 1e-14]]),
+        "blocks.1.vertices",
+        "degenerate",
+    ),
+    (
+        "clockwise",
+        setting("blocks.1.vertices", [[1, 1], [1, 2], [2, 2], [2, 1]]),
+        "blocks.1.vertices",
+        "vertices are clockwise; list them counter-clockwise",
+    ),
+    (
+        "non-convex",
+        setting("blocks.1.vertices", [[1, 1], [2, 1], [1.5, 1.5], [2, 2], [1, 2]]),
+        "blocks.1.vertices",
+        "is not convex at vertex 2",
+    ),
+    (
+        "collinear vertex",
+        setting("blocks.1.vertices", [[1, 1], [1.5, 1], [2, 1], [2, 2], [1, 2]]),
+        "blocks.1.vertices",
+        "degenerate vertex 1",
+    ),
+    (
+        "overlap",
+        setting("blocks.2.vertices", [[1, 1.5], [2, 1.5], [2, 2.5], [1, 2.5]]),
+        "blocks.2",
+        "overlaps blocks.1 (area 0.5 m2)",
+    ),
+    # discontinuities
+    ("disc joint", setting("discontinuities.0.joint", "k"), "discontinuities.0.joint", "'k'"),
+    ("disc same", setting("discontinuities.0.to", [0.0, 1.0]), "discontinuities.0.to", "same"),
+    ("disc no from", deleting("discontinuities.0.from"), "discontinuities.0.from", "required"),
+    (
+        "disc outside",
+        lambda d: d["discontinuities"][0].update({"from": [10, 10], "to": [12, 10]}),
+        "discontinuities.0",
+        "outside the domain",
+    ),
+    # boundaries
+    (
+        "side and from",
+        setting("boundaries.0.from", [0, 0]),
+        "boundaries.0",
+        "either side or from/to",
+    ),
+    ("no side", deleting("boundaries.0.side"), "boundaries.0", "side"),
+    ("bad side", setting("boundaries.0.side", "up"), "boundaries.0.side", "'up'"),
+    ("only from", deleting("boundaries.1.to"), "boundaries.1.to", "required"),
+    ("bad condition", setting("boundaries.0.condition", "free"), "boundaries.0.condition", "free"),
+    ("no condition", deleting("boundaries.0.condition"), "boundaries.0.condition", "required"),
+    ("no traction", deleting("boundaries.1.traction"), "boundaries.1.traction", "required"),
+    (
+        "traction on fixed",
+        setting("boundaries.0.traction", [0, 1]),
+        "boundaries.0.traction",
+        "only allowed",
+    ),
+    ("traction 3", setting("boundaries.1.traction", [0, 1, 2]), "boundaries.1.traction", "[tx"),
+    ("traction str", setting("boundaries.1.traction.1", "x"), "boundaries.1.traction.1", "number"),
+    # monitors
+    ("dup monitor", setting("monitors.1.name", "top"), "monitors.1.name", "duplicate name 'top'"),
+    ("no monitor name", deleting("monitors.0.name"), "monitors.0.name", "required"),
+    (
+        "monitor outside",
+        setting("monitors.0.point", [5, 9]),
+        "monitors.0.point",
+        "(5, 9) is outside the rock",
+    ),
+    (
+        "monitor in the air",
+        setting("monitors.0.point", [3.0, 2.0]),
+        "monitors.0.point",
+        "outside the rock",
+    ),
+    ("section outside", setting("monitors.1.to", [1.5, 3.5]), "monitors.1.to", "outside the rock"),
+    ("monitor both", setting("monitors.0.from", [1.5, 1.5]), "monitors.0", "either point"),
+    ("section half", deleting("monitors.1.to"), "monitors.1.to", "required"),
+    ("monitor neither", deleting("monitors.0.point"), "monitors.0", "needs point"),
+]
+
+
+@pytest.mark.parametrize(
+    ("mutation", "path", "words"),
+    [pytest.param(m, p, w, id=i) for i, m, p, w in REFUSALS],
+)
+def test_refusal(mutation, path, words):
+    with pytest.raises(SceneError) as info:
+        _load_mutated(mutation)
+    message = str(info.value)
+    assert message.startswith(path + ":"), message
+    assert info.value.path == path
+    assert words in message, message
+
+
+def test_refusals_do_not_mutate_input():
+    data = valid_scene_dict()
+    before = copy.deepcopy(data)
+    parse_scene(data)
+    assert data == before
+
+
+def test_near_touching_blocks_are_not_overlaps():
+    # A sliver of overlap from round-off (1e-12 m) is below 1e-9 of the block area.
+    data = valid_scene_dict()
+    data["blocks"][2]["vertices"] = [[1, 2 - 1e-12], [2, 2 - 1e-12], [2, 3], [1, 3]]
+    parse_scene(data)
+
+
+def test_file_errors_name_the_file(tmp_path: Path):
+    missing = tmp_path / "missing.toml"
+    with pytest.raises(SceneError, match="missing.toml") as info:
+        load_scene(missing)
+    assert info.value.path == str(missing)
+    empty = tmp_path / "empty.toml"
+    empty.write_text("  \n# nothing\n")
+    with pytest.raises(SceneError, match="empty.toml.*empty"):
+        load_scene(empty)
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[scene\nname = 1\n")
+    with pytest.raises(SceneError, match="bad.toml.*invalid TOML"):
+        load_scene(bad)
+    binary = tmp_path / "binary.toml"
+    binary.write_bytes(b"\xff\xfe\x00")
+    with pytest.raises(SceneError, match="binary.toml"):
+        load_scene(binary)
+    with pytest.raises(SceneError, match=str(tmp_path.name)):
+        load_scene(tmp_path)  # a directory
+    with pytest.raises(SceneError):
+        load_scene(42)  # type: ignore[arg-type]
+
+
+def test_not_a_table_is_a_scene_error():
+    with pytest.raises(SceneError):
+        parse_scene([1, 2, 3])  # type: ignore[arg-type]
+
+
+def test_toml_nan_is_refused():
+    text = VALID_TOML.replace("E = 2.0e7", "E = nan")
+    with pytest.raises(SceneError, match=r"^materials\.rock\.E: must be finite"):
+        load_scene(text)
+
+
+# --------------------------------------------------------------------------- overrides
+
+
+def test_set_changes_the_joint():
+    scene = load_scene(valid_scene_dict(), set={"joints.j.kn": 2e6})
+    assert scene.joints["j"].kn == 2e6
+    assert scene.data["joints"]["j"]["kn"] == 2e6
+
+
+def test_with_overrides_revalidates_and_keeps_original():
+    scene = load_scene(valid_scene_dict())
+    new = scene.with_overrides({"materials.rock.E": 3e7, "solver.load_steps": 8.0})
+    assert new.materials["rock"].E == 3e7
+    assert new.solver.load_steps == 8 and isinstance(new.solver.load_steps, int)
+    assert scene.materials["rock"].E == 2e7
+    assert new.source == scene.source
+    with pytest.raises(SceneError, match=r"^materials\.rock\.E: must be > 0"):
+        scene.with_overrides({"materials.rock.E": -1.0})
+
+
+def test_override_array_element_and_optional_field():
+    scene = load_scene(valid_scene_dict())
+    new = scene.with_overrides(
+        {"boundaries.1.traction.0": 5.0, "blocks.2.vertices.2.1": 3.5, "joints.j.cohesion": 10.0}
+    )
+    np.testing.assert_array_equal(new.boundaries[1].traction, [5.0, -100.0])
+    assert new.blocks[2].vertices[2, 1] == 3.5
+    assert new.joints["j"].cohesion == 10.0
+
+
+@pytest.mark.parametrize(
+    ("path", "message"),
+    [
+        ("joints.set9.kn", "--set joints.set9.kn: no such parameter"),
+        ("joints.j.stiffness", "--set joints.j.stiffness: no such parameter"),
+        ("blocks.9.fixed", "--set blocks.9.fixed: no such parameter"),
+        ("boundaries.1.traction.2", "--set boundaries.1.traction.2: no such parameter"),
+        ("blocks.0.fixed", "--set blocks.0.fixed: not a numeric parameter"),
+        ("scene.name", "--set scene.name: not a numeric parameter"),
+        ("blocks.0.vertices", "--set blocks.0.vertices: not a numeric parameter"),
+        ("in_situ.k0", "--set in_situ.k0: no such parameter"),
+    ],
+)
+def test_override_refused(path, message):
+    scene = load_scene(valid_scene_dict())
+    with pytest.raises(SceneError) as info:
+        scene.with_overrides({path: 1.0})
+    assert str(info.value).startswith(message)
+    assert info.value.path == path
+
+
+def test_apply_overrides_copies_and_checks_values():
+    data = valid_scene_dict()
+    out = apply_overrides(data, {"joints.j.kn": 3e6, "solver.max_iterations": 80})
+    assert data["joints"]["j"]["kn"] == 1e6
+    assert out["joints"]["j"]["kn"] == 3e6
+    assert out["solver"] == {"max_iterations": 80}
+    with pytest.raises(SceneError, match="finite"):
+        apply_overrides(data, {"joints.j.kn": math.nan})
+    with pytest.raises(SceneError, match="number"):
+        apply_overrides(data, {"joints.j.kn": "2e6"})
+
+
+def test_parse_set_arguments():
+    assert parse_set_arguments(["joints.j.kn=2e6"]) == {"joints.j.kn": 2e6}
+    assert parse_set_arguments(["a.b = 1", "c.0.d=-0.5"]) == {"a.b": 1.0, "c.0.d": -0.5}
+    assert parse_set_arguments([]) == {}
+
+
+@pytest.mark.parametrize("item", ["joints.j.kn", "=3", "joints..kn=3", "joints.j.kn=abc", "x=nan"])
+def test_parse_set_arguments_refused(item):
+    with pytest.raises(SceneError) as info:
+        parse_set_arguments([item])
+    assert info.value.path == "--set"
+    assert str(info.value).startswith("--set: ")
+
+
+# --------------------------------------------------------------------------- properties
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    n=st.integers(3, 12),
+    radius=st.floats(1e-3, 1e3),
+    angle=st.floats(0.0, 2.0 * math.pi),
+    cx=st.floats(-1e5, 1e5),
+)
+def test_regular_polygons_accepted_and_reversed_refused(n, radius, angle, cx):
+    k = np.arange(n)
+    v = np.stack(
+        [
+            cx + radius * np.cos(angle + 2 * np.pi * k / n),
+            radius * np.sin(angle + 2 * np.pi * k / n),
+        ],
+        axis=1,
+    )
+    data = {
+        "scene": {"name": "one"},
+        "materials": {"rock": {"E": 1e7, "nu": 0.2, "unit_weight": 25.0}},
+        "blocks": [{"vertices": v.tolist(), "material": "rock"}],
+        "monitors": [{"name": "c", "point": [cx, 0.0]}],
+    }
+    scene = parse_scene(data)
+    np.testing.assert_allclose(scene.blocks[0].vertices, v)
+    data["blocks"][0]["vertices"] = v[::-1].tolist()
+    with pytest.raises(SceneError, match=r"^blocks\.0\.vertices: vertices are clockwise"):
+        parse_scene(data)
+
+
+def test_numpy_arrays_accepted_in_programmatic_scenes():
+    data = valid_scene_dict()
+    data["blocks"][1]["vertices"] = np.array(data["blocks"][1]["vertices"])
+    data["monitors"][0]["point"] = np.array([1.5, 3.0])
+    assert parse_scene(data).blocks[1].vertices.shape == (4, 2)
+
+
+def test_ten_thousand_blocks_validate_quickly():
+    square = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    data = valid_scene_dict()
+    data["blocks"] = [
+        {"vertices": (square + [i, j]).tolist(), "material": "rock"}
+        for i in range(100)
+        for j in range(100)
+    ]
+    data["discontinuities"] = []
+    data["boundaries"] = [{"side": "bottom", "condition": "fixed"}]
+    data["monitors"] = [{"name": "m", "point": [50.5, 50.5]}]
+    t0 = time.perf_counter()
+    scene = parse_scene(data)
+    elapsed = time.perf_counter() - t0
+    assert len(scene.blocks) == 10_000
+    assert elapsed < 10.0, f"validating 10,000 blocks took {elapsed:.1f} s"
+    data["blocks"][4321]["vertices"] = (square + [43.5, 21.0]).tolist()
+    with pytest.raises(SceneError, match=r"^blocks\.4421: overlaps blocks\.4321 \(area 0\.5 m2\)"):
+        parse_scene(data)
