@@ -192,7 +192,7 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
     k_ref = L / (L * k_block + 1.0 / float(np.median(joint_kn)))
     rg2 = np.array([_polar_moment(p, c) for p, c in zip(all_polys, all_cents)])
     pseudo_mass = s.regularization * k_ref * np.stack([np.ones(N), np.ones(N), rg2], axis=1)
-    f_ref = float(np.max(np.linalg.norm(f_ext[:, :2], axis=1)))
+    f_ref = float(np.max(np.linalg.norm(f_ext[free, :2], axis=1), initial=0.0))
     if f_ref <= 0:
         f_ref = k_ref * L * 1e-6
 

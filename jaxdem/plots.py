@@ -594,11 +594,12 @@ def _draw_monitors(ax: Any, monitors: dict[str, Any], size: float) -> list[Any]:
                 ms=10,
                 zorder=8,
             )
-            mid = seg.mean(axis=0)
+            # Label at the "to" end: the middle is often where a point monitor sits.
+            end = seg[1]
             ax.annotate(
                 str(name),
-                xy=mid,
-                xytext=(mid[0] + offset, mid[1] + offset),
+                xy=end,
+                xytext=(end[0] + offset, end[1] + offset),
                 color=_MONITOR_COLOUR,
                 fontsize=8,
                 zorder=9,

@@ -115,6 +115,7 @@ class _Sub:
     fs_old: jax.Array
     failed: jax.Array
     load: jax.Array
+    touch_tol: jax.Array
 
 
 def _evaluate(model: Model, sub: _Sub, du, frozen, frozen_state):
@@ -143,16 +144,27 @@ def _residual_norm(model: Model, R):
     return jnp.max(jnp.where(model.free, r, 0.0))
 
 
-def _tangent_springs(sub: _Sub, st):
-    kn = jnp.where(sub.geo["active"] & (st != OPEN), sub.prop["kn"], 0.0)
-    ks = jnp.where(sub.geo["active"] & (st == STICK), sub.prop["ks"], 0.0)
+def _tangent_springs(sub: _Sub, st, gap, consistent):
+    """Normal and shear springs of the iteration matrix K_t.
+
+    Closed slots, and open ones still touching (round-off must not free a
+    block resting on its support), carry both springs: for a slipping slot
+    this is the elastic (secant) stiffness, which keeps every step of the
+    order of the elastic compliance. With ``consistent``, slipping slots lose
+    their shear spring: the tangent of the slip law, used once the elastic
+    iteration has stalled, so that a sliding mechanism makes a finite move
+    (bounded by the step length) instead of creeping at elastic speed.
+    """
+    closed = sub.geo["active"] & ((st != OPEN) | (gap <= sub.touch_tol))
+    kn = jnp.where(closed, sub.prop["kn"], 0.0)
+    ks = jnp.where(closed & ~(consistent & (st == SLIP)), sub.prop["ks"], 0.0)
     return kn, ks
 
 
-def _solve_dense(model: Model, sub: _Sub, st, R):
+def _solve_dense(model: Model, sub: _Sub, st, gap, consistent, R):
     """(K_t + eps M)^-1 R by Cholesky on the assembled (3N, 3N) matrix."""
     N = model.n_blocks
-    kn, ks = _tangent_springs(sub, st)
+    kn, ks = _tangent_springs(sub, st, gap, consistent)
     Ke = (kn[:, None, None] * sub.Bn[:, :, None] * sub.Bn[:, None, :]
           + ks[:, None, None] * sub.Bs[:, :, None] * sub.Bs[:, None, :])
     a, b = sub.geo["a"], sub.geo["b"]
@@ -165,13 +177,13 @@ def _solve_dense(model: Model, sub: _Sub, st, R):
     return jax.scipy.linalg.cho_solve(c, R.reshape(-1)).reshape(N, 3)
 
 
-def _solve_cg(model: Model, sub: _Sub, st, R):
+def _solve_cg(model: Model, sub: _Sub, st, gap, consistent, R):
     """(K_t + eps M)^-1 R by conjugate gradients, matrix-free, block-Jacobi preconditioned.
 
     The product K x is a gather/scatter over the slots: cost and memory linear
     in the number of contacts.
     """
-    kn, ks = _tangent_springs(sub, st)
+    kn, ks = _tangent_springs(sub, st, gap, consistent)
     pm = jnp.where(model.free[:, None], model.pseudo_mass, 1.0)
 
     def matvec(x):
@@ -214,7 +226,8 @@ def _newton(model: Model, sub: _Sub, st0):
     S = st0.shape[0]
     N = model.n_blocks
     solve = _solve_dense if model.dense else _solve_cg
-    tol = model.tol * jnp.maximum(jnp.max(jnp.linalg.norm(sub.load[:, :2], axis=1)), model.f_ref * 1e-3)
+    load = jnp.where(model.free, jnp.linalg.norm(sub.load[:, :2], axis=1), 0.0)
+    tol = model.tol * jnp.maximum(jnp.max(load), model.f_ref * 1e-3)
     zeros_s = jnp.zeros(S, jnp.int32)
 
     def cond(c):
@@ -229,7 +242,8 @@ def _newton(model: Model, sub: _Sub, st0):
         newly = (flips >= 4) & ~c["frozen"]
         frozen = c["frozen"] | newly
         frozen_state = jnp.where(newly, ev["state"], c["frozen_state"])
-        ddu = solve(model, sub, ev["state"], ev["R"])
+        stalled = (rnorm > 0.9 * c["rprev"]) & ~jnp.any(changed)
+        ddu = solve(model, sub, ev["state"], ev["gap"], stalled, ev["R"])
         t_now = _travel(model, c["du"])
         t_step = _travel(model, ddu)
         room = jnp.maximum(model.step_length - t_now, 0.0)
@@ -241,12 +255,13 @@ def _newton(model: Model, sub: _Sub, st0):
         done = converged | clipped | ~finite | (it >= model.max_iterations)
         return dict(du=du, st=ev["state"], flips=flips, frozen=frozen, frozen_state=frozen_state,
                     it=it, done=done, converged=converged, clipped=clipped & ~converged,
-                    finite=finite, rnorm=rnorm / tol * model.tol)
+                    finite=finite, rnorm=rnorm / tol * model.tol, rprev=rnorm)
 
     init = dict(du=jnp.zeros((N, 3), sub.load.dtype), st=st0, flips=zeros_s,
                 frozen=jnp.zeros(S, bool), frozen_state=zeros_s, it=jnp.array(0),
                 done=jnp.array(False), converged=jnp.array(False), clipped=jnp.array(False),
-                finite=jnp.array(True), rnorm=jnp.array(jnp.inf, sub.load.dtype))
+                finite=jnp.array(True), rnorm=jnp.array(jnp.inf, sub.load.dtype),
+                rprev=jnp.array(jnp.inf, sub.load.dtype))
     c = jax.lax.while_loop(cond, body, init)
     ev = _evaluate(model, sub, c["du"], c["frozen"], c["frozen_state"])
     return c["du"], ev, c
@@ -280,7 +295,7 @@ def _substep(model: Model, state: State, lam):
     st0 = jnp.where(same, flat(hist["cstate"]), OPEN)
     Bn, Bs = b_rows(model, geo, state.centroid)
     sub = _Sub(geo=geo, prop=prop, Bn=Bn, Bs=Bs, fs_old=fs_old, failed=failed,
-               load=lam * model.f_ext)
+               load=lam * model.f_ext, touch_tol=model.touch_tol)
     du, ev, c = _newton(model, sub, st0)
     st = ev["state"]
     active = geo["active"]

@@ -1,0 +1,69 @@
+"""Small scene dictionaries shared by the tests (parsed with jaxdem.scene.parse_scene)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+ROCK = {"E": 1.0e7, "nu": 0.25, "unit_weight": 25.0}
+
+
+def incline_frame(alpha_deg: float):
+    """Unit tangent (down-slope is -t) and normal of a slope rising to the right."""
+    a = math.radians(alpha_deg)
+    t = np.array([math.cos(a), math.sin(a)])
+    n = np.array([-math.sin(a), math.cos(a)])
+    return t, n
+
+
+def slope_base(alpha_deg: float, length: float = 12.0):
+    """Fixed quadrilateral whose top face is the slope y = x tan(alpha), x in [-1, length]."""
+    ta = math.tan(math.radians(alpha_deg))
+    return [[-1.0, -ta - 2.0], [length, -ta - 2.0], [length, length * ta], [-1.0, -ta]]
+
+
+def rect_on_slope(alpha_deg: float, s0: float, width: float, height: float):
+    """Rectangle of ``width`` along the slope and ``height`` normal to it, from slope coordinate s0."""
+    t, n = incline_frame(alpha_deg)
+    p0 = s0 * t
+    return [list(p0), list(p0 + width * t), list(p0 + width * t + height * n), list(p0 + height * n)]
+
+
+def block_on_incline(alpha_deg: float, friction_deg: float, *, cohesion: float = 0.0,
+                     width: float = 1.0, height: float = 1.0, kn: float = 1e6, ks: float = 5e5,
+                     load_steps: int = 1, **solver) -> dict:
+    """A block resting on a fixed slope, with a point monitor at its centroid."""
+    blk = rect_on_slope(alpha_deg, 4.0, width, height)
+    c = np.mean(np.array(blk), axis=0)
+    return {
+        "scene": {"name": f"incline {alpha_deg}/{friction_deg}"},
+        "solver": {"load_steps": load_steps, **solver},
+        "materials": {"rock": dict(ROCK)},
+        "joints": {"base": {"kn": kn, "ks": ks, "friction_deg": friction_deg,
+                            "cohesion": cohesion}},
+        "blocks": [
+            {"vertices": slope_base(alpha_deg), "material": "rock", "fixed": True},
+            {"vertices": blk, "material": "rock"},
+        ],
+        "monitors": [{"name": "block", "point": c.tolist()}],
+    }
+
+
+def stack(n_blocks: int = 3, *, kn: float = 1e6, ks: float = 1e6, width: float = 1.0,
+          height: float = 1.0, load_steps: int = 1) -> dict:
+    """A column of square blocks on a fixed base block, monitor at the top block."""
+    blocks = [{"vertices": [[-2, -1], [3, -1], [3, 0], [-2, 0]], "material": "rock", "fixed": True}]
+    for k in range(n_blocks):
+        y0 = k * height
+        blocks.append({"vertices": [[0, y0], [width, y0], [width, y0 + height], [0, y0 + height]],
+                       "material": "rock"})
+    top = [0.5 * width, (n_blocks - 0.5) * height]
+    return {
+        "scene": {"name": f"stack of {n_blocks}"},
+        "solver": {"load_steps": load_steps},
+        "materials": {"rock": dict(ROCK)},
+        "joints": {"j": {"kn": kn, "ks": ks, "friction_deg": 35.0}},
+        "blocks": blocks,
+        "monitors": [{"name": "top", "point": top}],
+    }
