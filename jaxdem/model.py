@@ -10,7 +10,7 @@ Choices made here (documented for users in the README):
   no opening) and have no joint term: k = kn_i / h of the rock block alone.
 - A traction boundary applies ``traction`` (kPa, global x and y components)
   to the block faces lying on its segment, as a dead load.
-- Scales: L = median block size sqrt(area). Detection margin 2 * step_length;
+- Scales: L = median size sqrt(area) of the free blocks. Detection margin 2 * step_length;
   step_length defaults to L / 20; touch tolerance 1e-6 L (1e-4 L in float32);
   max_displacement defaults to L (a block that moves its own size in one
   increment without finding equilibrium is falling or sliding away).
@@ -120,7 +120,8 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
     n_rock = len(polys)
     areas = np.array([geometry.signed_area(p) for p in polys])
     cents = np.array([geometry.centroid(p) for p in polys])
-    L = float(np.median(np.sqrt(areas)))
+    free_rock = np.array([not b.fixed for b in scene.blocks])
+    L = float(np.median(np.sqrt(areas[free_rock] if free_rock.any() else areas)))
     allv = np.concatenate(polys)
     lo, hi = allv.min(0), allv.max(0)
     size = float(np.linalg.norm(hi - lo))
@@ -221,7 +222,7 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
         corner_share=jnp.asarray(0.1, dtype),
         n_blocks=N, n_vertices=V, n_big=len(big), use_cells=use_cells,
         cell_capacity=cell_capacity, dense=n_rock <= _DENSE_UP_TO,
-        max_iterations=s.max_iterations, max_substeps=max_substeps,
+        max_iterations=jnp.asarray(s.max_iterations), max_substeps=jnp.asarray(max_substeps),
     )
     state = State(
         verts=jnp.asarray(verts, dtype), centroid=jnp.asarray(all_cents, dtype),

@@ -42,7 +42,8 @@ class Result:
       bolts: one dict per bolt (empty in explicit-block scenes).
       stages: per stage ``name``, ``converged``, ``stable``, ``iterations`` (Newton
         iterations per increment), ``substeps`` (geometry updates per increment),
-        ``residual`` (final relative residual per increment), ``monitors``
+        ``residual`` (final relative residual per increment), ``imbalance``
+        (relative global force imbalance per increment), ``monitors``
         (monitor name -> value after each increment).
       moving_blocks: ids of the blocks that kept moving when a mechanism was found.
       equilibrium: global balance of the final state: ``applied`` [Fx, Fy, M]
@@ -217,16 +218,15 @@ def build_result(scene, model, layout, state, info, increments, history, timing)
     contacts = {"total": int(act.sum()), "open": int((st == OPEN).sum()),
                 "slipping": int((st == SLIP).sum())}
     bal = {k: np.asarray(v) for k, v in info["balance"].items()}
-    scale = max(float(np.linalg.norm(bal["applied"][:2])), 1e-300)
-    imbalance = float(np.linalg.norm(bal["applied"][:2] + bal["reaction"][:2]) / scale)
     equilibrium = {"applied": bal["applied"].tolist(), "reaction": bal["reaction"].tolist(),
-                   "imbalance": imbalance}
+                   "imbalance": increments[-1]["imbalance"]}
     monitors = monitor_values(layout, state)
     stage = {
         "name": "loading", "converged": converged, "stable": stable,
         "iterations": [r["iterations"] for r in increments],
         "substeps": [r["substeps"] for r in increments],
         "residual": [r["residual"] for r in increments],
+        "imbalance": [r["imbalance"] for r in increments],
         "monitors": {name: [_scalar(h["monitors"][name]) for h in history] for name in monitors},
     }
     verts = np.asarray(state.verts)

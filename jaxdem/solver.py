@@ -152,12 +152,13 @@ def _tangent_springs(sub: _Sub, st, gap, consistent):
     this is the elastic (secant) stiffness, which keeps every step of the
     order of the elastic compliance. With ``consistent``, slipping slots lose
     their shear spring: the tangent of the slip law, used once the elastic
-    iteration has stalled, so that a sliding mechanism makes a finite move
+    iteration has stalled (touching open slots lose it too), so that a
+    sliding mechanism makes a finite move
     (bounded by the step length) instead of creeping at elastic speed.
     """
     closed = sub.geo["active"] & ((st != OPEN) | (gap <= sub.touch_tol))
     kn = jnp.where(closed, sub.prop["kn"], 0.0)
-    ks = jnp.where(closed & ~(consistent & (st == SLIP)), sub.prop["ks"], 0.0)
+    ks = jnp.where(closed & ((st == STICK) | ~consistent), sub.prop["ks"], 0.0)
     return kn, ks
 
 
@@ -229,6 +230,7 @@ def _newton(model: Model, sub: _Sub, st0):
     load = jnp.where(model.free, jnp.linalg.norm(sub.load[:, :2], axis=1), 0.0)
     tol = model.tol * jnp.maximum(jnp.max(load), model.f_ref * 1e-3)
     zeros_s = jnp.zeros(S, jnp.int32)
+    allow = 0.02 * model.step_length
 
     def cond(c):
         return ~c["done"]
@@ -247,8 +249,18 @@ def _newton(model: Model, sub: _Sub, st0):
         t_now = _travel(model, c["du"])
         t_step = _travel(model, ddu)
         room = jnp.maximum(model.step_length - t_now, 0.0)
-        scale = jnp.min(jnp.where(t_step > room, room / jnp.where(t_step > 0, t_step, 1.0), 1.0))
-        clipped = scale < 1.0
+        s_travel = jnp.min(jnp.where(t_step > room, room / jnp.where(t_step > 0, t_step, 1.0), 1.0))
+        # An open slot may close during the step, but not sink deeper than a
+        # small allowance: a free block lands on its support, it does not
+        # plunge a whole step length into it.
+        dn_step = jnp.sum(sub.Bn * _gather(ddu, sub.geo), axis=1)
+        g_pred = ev["gap"] + dn_step
+        landing = sub.geo["active"] & (ev["state"] == OPEN) & (ev["gap"] > 0) & (g_pred < -allow)
+        drop = jnp.where(landing, ev["gap"] - g_pred, 1.0)
+        s_gap = jnp.min(jnp.where(landing, (ev["gap"] + allow) / drop, 1.0))
+        scale = jnp.minimum(s_travel, s_gap)
+        clipped = s_travel <= s_gap
+        clipped = clipped & (s_travel < 1.0)
         du = jnp.where(converged, c["du"], c["du"] + scale * ddu)
         finite = jnp.all(jnp.isfinite(du))
         it = c["it"] + 1
@@ -416,6 +428,13 @@ def run_increment(model: Model, state: State, lam):
             state = grow_capacity(state, max(2 * state.capacity, int(1.3 * need) + 16))
 
 
+def _imbalance(balance) -> float:
+    """|applied + reaction| / |applied| of the forces on the free blocks (relative)."""
+    applied = np.asarray(balance["applied"][:2])
+    reaction = np.asarray(balance["reaction"][:2])
+    return float(np.linalg.norm(applied + reaction) / max(np.linalg.norm(applied), 1e-300))
+
+
 def solve(scene, set: dict | None = None, progress=None):
     """Solve a scene: load steps of self-weight and tractions, each to static equilibrium.
 
@@ -458,7 +477,8 @@ def solve(scene, set: dict | None = None, progress=None):
         increments.append(dict(step=k, load_factor=lam, status=status,
                                iterations=int(info["iterations"]),
                                substeps=int(info["substeps"]),
-                               residual=float(info["residual"])))
+                               residual=float(info["residual"]),
+                               imbalance=_imbalance(info["balance"])))
         history.append(dict(stage="loading", step=k, load_factor=lam,
                             monitors=monitor_values(layout, state)))
         if progress is not None:

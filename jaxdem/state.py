@@ -40,10 +40,9 @@ def _pytree(data: list[str], meta: list[str]):
         "nv", "vmask", "free", "kind", "kn_inv", "ks_inv", "area", "radius", "f_ext",
         "edge_joint", "joint_kn", "joint_ks", "joint_c", "joint_t", "joint_tanphi",
         "big", "pseudo_mass", "f_ref", "tol", "step_length", "margin", "touch_tol",
-        "max_displacement", "cos_parallel", "corner_share",
+        "max_displacement", "cos_parallel", "corner_share", "max_iterations", "max_substeps",
     ],
-    meta=["n_blocks", "n_vertices", "n_big", "use_cells", "cell_capacity", "dense",
-          "max_iterations", "max_substeps"],
+    meta=["n_blocks", "n_vertices", "n_big", "use_cells", "cell_capacity", "dense"],
 )
 @dataclasses.dataclass(frozen=True)
 class Model:
@@ -75,6 +74,10 @@ class Model:
       cos_parallel: faces closer than this cosine to anti-parallel are an
         edge-to-edge contact. corner_share: effective length of a
         corner-to-edge point as a fraction of its shorter adjacent edge.
+      max_iterations: Newton iterations per geometry sub-step.
+      max_substeps: geometry sub-steps per increment.
+      n_blocks, n_vertices, n_big, cell_capacity: static sizes (N, V, ...).
+      use_cells: grid broad phase (else all pairs). dense: Cholesky (else CG).
     """
 
     nv: jax.Array
@@ -102,14 +105,14 @@ class Model:
     max_displacement: jax.Array
     cos_parallel: jax.Array
     corner_share: jax.Array
+    max_iterations: jax.Array
+    max_substeps: jax.Array
     n_blocks: int
     n_vertices: int
     n_big: int
     use_cells: bool
     cell_capacity: int
     dense: bool
-    max_iterations: int
-    max_substeps: int
 
 
 @_pytree(

@@ -1,0 +1,39 @@
+"""A column of blocks on a fixed base: settlement from eqs. 6-7 with Le.
+
+Each joint carries the weight of the blocks above it, W_k = gamma A (n - k).
+Its equivalent stiffness per unit length is k = 1 / (h1/kn_i + h2/kn_i + 1/kn0)
+(eq. 7, h = half the block height, kn_i = E / (1 - nu^2), eq. 4) over the
+contact length Le = width (eq. 8). The top settles by sum_k W_k / (k Le).
+"""
+
+import pytest
+from scenes import stack
+
+import jaxdem
+from jaxdem.laws import equivalent_stiffness, intact_stiffness
+from jaxdem.scene import parse_scene
+
+
+@pytest.mark.parametrize("n, kn, width, height", [(1, 1e6, 1.0, 1.0), (3, 1e6, 1.0, 1.0),
+                                                   (4, 2e5, 2.0, 0.5)])
+def test_stack_settlement_matches_closed_form(n, kn, width, height):
+    r = jaxdem.solve(parse_scene(stack(n, kn=kn, width=width, height=height)))
+    assert r.converged
+    kn_i, _ = intact_stiffness(1e7, 0.25)
+    W = 25.0 * width * height
+    base_h = 0.5  # the fixed base is 1 m high
+    settle = 0.0
+    for k in range(n):
+        h_below = base_h if k == 0 else height / 2
+        k_eq = equivalent_stiffness(height / 2, h_below, 1 / kn_i, 1 / kn_i, 1 / kn)
+        settle += W * (n - k) / (k_eq * width)
+    ux, uy = r.monitors["top"]["displacement"]
+    assert -uy == pytest.approx(settle, rel=0.01)
+    assert abs(ux) < 1e-6 * settle
+
+
+def test_settlement_scales_with_load_steps_only_through_the_path():
+    # Elastic: the answer does not depend on how the weight is applied.
+    a = jaxdem.solve(parse_scene(stack(3, load_steps=1))).monitors["top"]["displacement"][1]
+    b = jaxdem.solve(parse_scene(stack(3, load_steps=5))).monitors["top"]["displacement"][1]
+    assert a == pytest.approx(b, rel=1e-6)
