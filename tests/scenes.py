@@ -67,3 +67,39 @@ def stack(n_blocks: int = 3, *, kn: float = 1e6, ks: float = 1e6, width: float =
         "blocks": blocks,
         "monitors": [{"name": "top", "point": top}],
     }
+
+
+def slide_and_stop(gap: float = 1.0, alpha: float = 30.0, phi: float = 15.0) -> dict:
+    """Seed example 1: a block slides down a slope until it meets a fixed block."""
+    blk = rect_on_slope(alpha, 4.0, 1.0, 1.0)
+    stop = rect_on_slope(alpha, 4.0 - gap - 1.0, 1.0, 1.0)
+    c = np.mean(np.array(blk), axis=0)
+    return {
+        "scene": {"name": "seed example 1"},
+        "solver": {"load_steps": 1, "max_displacement": 3.0 * gap},
+        "materials": {"rock": dict(ROCK)},
+        "joints": {"j": {"kn": 1e6, "ks": 5e5, "friction_deg": phi}},
+        "blocks": [
+            {"vertices": slope_base(alpha), "material": "rock", "fixed": True},
+            {"vertices": blk, "material": "rock"},
+            {"vertices": stop, "material": "rock", "fixed": True},
+        ],
+        "monitors": [{"name": "block", "point": c.tolist()}],
+    }
+
+
+def tall_block(width: float, height: float, alpha: float = 20.0, phi: float = 40.0) -> dict:
+    """A block on a slope with friction high enough to stop sliding."""
+    blk = rect_on_slope(alpha, 4.0, width, height)
+    c = np.mean(np.array(blk), axis=0)
+    return {
+        "scene": {"name": f"toppling {width}x{height}"},
+        "solver": {"load_steps": 1, "max_displacement": 0.3 * height},
+        "materials": {"rock": dict(ROCK)},
+        "joints": {"j": {"kn": 1e6, "ks": 5e5, "friction_deg": phi}},
+        "blocks": [
+            {"vertices": slope_base(alpha), "material": "rock", "fixed": True},
+            {"vertices": blk, "material": "rock"},
+        ],
+        "monitors": [{"name": "block", "point": c.tolist()}],
+    }
