@@ -227,7 +227,7 @@ def narrow_phase(model: Model, verts, centroid, pairs):
     # A vertex of b at a contact point of a vertex of a (within that point's
     # overlap) is the same contact point: it is counted once, from a.
     dv = vb[:, :, None, :] - va[:, None, :, :]
-    reach = 1.5 * jnp.abs(jnp.minimum(s0["gap"], 0.0)) + model.touch_tol
+    reach = 1.5 * jnp.abs(s0["gap"]) + model.touch_tol
     coincide = jnp.any((jnp.sum(dv * dv, axis=-1) <= reach[:, None, :] ** 2)
                        & s0["active"][:, None, :], axis=-1)
     s1 = _vertex_edge(model, vb, nvb, vmb, cb, ea, ca, ~coincide)

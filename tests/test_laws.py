@@ -1,0 +1,66 @@
+"""Contact laws: equivalent stiffness (eqs. 3-7) and Mohr-Coulomb with tension cut-off."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxdem.laws import equivalent_stiffness, intact_stiffness, mohr_coulomb
+from jaxdem.state import OPEN, SLIP, STICK
+
+
+def test_intact_stiffness_eqs_3_4():
+    kn, ks = intact_stiffness(1e7, 0.25)
+    assert kn == pytest.approx(1e7 / (1 - 0.0625))
+    assert ks == pytest.approx(1e7 / 1.25)
+
+
+def test_equivalent_stiffness_is_springs_in_series_eq_7():
+    # h1/k1 + h2/k2 + 1/k0 = 0.5/1e7 + 0.5/1e7 + 1/1e6 = 1.1e-6
+    assert equivalent_stiffness(0.5, 0.5, 1e-7, 1e-7, 1e-6) == pytest.approx(1 / 1.1e-6)
+    # Without a joint term only the blocks' halves remain.
+    assert equivalent_stiffness(0.5, 0.5, 1e-7, 1e-7, 0.0) == pytest.approx(1e7)
+
+
+def _prop(c=0.0, t=0.0, phi=30.0):
+    one = jnp.ones(5)
+    return dict(kn=one, ks=one, cohesion=c * one, tension=t * one,
+                tanphi=np.tan(np.radians(phi)) * one, bonded=jnp.zeros(5, bool))
+
+
+def test_mohr_coulomb_states():
+    fn_tr = jnp.array([10.0, 10.0, -1.0, -1.0, 10.0])
+    fs_tr = jnp.array([1.0, 8.0, 0.0, 0.0, -8.0])
+    failed = jnp.array([False, False, False, True, False])
+    active = jnp.ones(5, bool)
+    fn, fs, st = mohr_coulomb(fn_tr, fs_tr, _prop(c=0.0, t=2.0), failed, active)
+    lim = 10.0 * np.tan(np.radians(30.0))
+    # stick, slip (+), tension within T, tension after failure (T lost), slip (-)
+    np.testing.assert_array_equal(np.asarray(st), [STICK, SLIP, STICK, OPEN, SLIP])
+    np.testing.assert_allclose(np.asarray(fs), [1.0, lim, 0.0, 0.0, -lim])
+    np.testing.assert_allclose(np.asarray(fn), [10.0, 10.0, -1.0, 0.0, 10.0])
+
+
+def test_cohesion_lost_on_failure():
+    fn_tr = jnp.full(5, 10.0)
+    fs_tr = jnp.full(5, 8.0)
+    active = jnp.ones(5, bool)
+    lim = 10.0 * np.tan(np.radians(30.0))
+    _, fs, st = mohr_coulomb(fn_tr, fs_tr, _prop(c=3.0), jnp.zeros(5, bool), active)
+    assert (np.asarray(st) == STICK).all()  # 8 < 3 + 5.77
+    _, fs, st = mohr_coulomb(fn_tr, fs_tr, _prop(c=3.0), jnp.ones(5, bool), active)
+    assert (np.asarray(st) == SLIP).all()
+    np.testing.assert_allclose(np.asarray(fs), lim)
+
+
+def test_laws_vmap_and_grad():
+    prop = _prop(c=1.0)
+    f = lambda fn, fs: mohr_coulomb(fn, fs, prop, jnp.zeros(5, bool), jnp.ones(5, bool))[1]  # noqa: E731
+    fn = jnp.full(5, 10.0)
+    fs = jnp.linspace(0.0, 9.0, 5)
+    batched = jax.vmap(f)(jnp.stack([fn, 2 * fn]), jnp.stack([fs, fs]))
+    np.testing.assert_allclose(np.asarray(batched[0]), np.asarray(f(fn, fs)))
+    # Slipping: d fs / d fn = tan(phi); sticking: d fs / d fs_trial = 1.
+    g = jax.grad(lambda x: f(jnp.full(5, x), fs).sum())(10.0)
+    slipping = int((jnp.abs(fs) > 1.0 + 10.0 * np.tan(np.radians(30.0))).sum())
+    assert float(g) == pytest.approx(slipping * np.tan(np.radians(30.0)))
