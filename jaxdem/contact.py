@@ -120,7 +120,9 @@ def broad_phase(model: Model, verts: jax.Array, capacity: int):
     if model.n_big:
         g = model.big
         ok_big = _boxes_overlap(box[g][:, None, :], box[None, :, :])
-        ok_big = ok_big & (g[:, None] != ids[None, :]) & (~is_big[None, :] | (ids[None, :] > g[:, None]))
+        # Big-big pairs once (from the lower id), big-small pairs from the big side.
+        once = ~is_big[None, :] | (ids[None, :] > g[:, None])
+        ok_big = ok_big & (g[:, None] != ids[None, :]) & once
         ok_big = ok_big & (model.free[g][:, None] | model.free[None, :])
         ga = jnp.broadcast_to(g[:, None], ok_big.shape)
         gb = jnp.broadcast_to(ids[None, :], ok_big.shape)
@@ -238,7 +240,8 @@ def narrow_phase(model: Model, verts, centroid, pairs):
     j_face = model.edge_joint[B, out["edge"]]
     j_own = jnp.where(out["own_edge"] >= 0,
                       model.edge_joint[A, jnp.maximum(out["own_edge"], 0)], -1)
-    joint = jnp.where(j_face >= 0, j_face, jnp.where(j_own >= 0, j_own, model.joint_kn.shape[0] - 1))
+    default = model.joint_kn.shape[0] - 1
+    joint = jnp.where(j_face >= 0, j_face, jnp.where(j_own >= 0, j_own, default))
     S = P * 2 * V
     flat = lambda x: x.reshape((S,) + x.shape[3:])  # noqa: E731
     res = {k: flat(v) for k, v in out.items() if k not in ("h_x", "h_y", "own_edge")}

@@ -54,7 +54,7 @@ def slot_properties(model: Model, geo: dict) -> dict:
     )
 
 
-def mohr_coulomb(fn_trial, fs_trial, prop: dict, failed, active):
+def mohr_coulomb(fn_trial, fs_trial, prop: dict, failed, active, prev=None, band=0.0):
     """Tension cut-off and Mohr-Coulomb slip of trial spring forces.
 
     Args:
@@ -63,6 +63,12 @@ def mohr_coulomb(fn_trial, fs_trial, prop: dict, failed, active):
       prop: output of :func:`slot_properties`.
       failed: the slot has lost cohesion and tensile strength.
       active: the slot exists.
+      prev: the slot's previous state, for the hysteresis band (optional).
+      band: force (kN/m) by which the trial force must pass the opening
+        threshold to change a slot between open and closed. Within the band
+        either state is within ``band`` of equilibrium, so a band below the
+        residual tolerance never changes a converged answer; it stops slots
+        at zero force from flipping at every iteration.
     Returns:
       fn, fs, state (OPEN, STICK or SLIP). A contact opens when its tension
       exceeds its tensile strength (zero once failed); it slips when
@@ -72,7 +78,11 @@ def mohr_coulomb(fn_trial, fs_trial, prop: dict, failed, active):
     bonded = prop["bonded"]
     t_cap = jnp.where(failed, 0.0, prop["tension"])
     c = jnp.where(failed, 0.0, prop["cohesion"])
-    opened = ~bonded & (fn_trial < -t_cap)
+    if prev is None:
+        threshold = -t_cap
+    else:
+        threshold = jnp.where(prev == OPEN, -t_cap + band, -t_cap - band)
+    opened = ~bonded & (fn_trial < threshold)
     fn = jnp.where(opened | ~active, 0.0, fn_trial)
     limit = jnp.maximum(c + fn * prop["tanphi"], 0.0)
     slip = ~bonded & ~opened & (jnp.abs(fs_trial) > limit)

@@ -150,8 +150,10 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
         verts[i, len(p):] = p[0]
         nv[i] = len(p)
     vmask = np.arange(V)[None, :] < nv[:, None]
-    all_cents = np.concatenate([cents, np.array([geometry.centroid(w) for w in walls]).reshape(-1, 2)])
-    radius = np.array([np.max(np.linalg.norm(p - c, axis=1)) for p, c in zip(all_polys, all_cents)])
+    wall_cents = np.array([geometry.centroid(w) for w in walls]).reshape(-1, 2)
+    all_cents = np.concatenate([cents, wall_cents])
+    radius = np.array([np.max(np.linalg.norm(p - c, axis=1))
+                       for p, c in zip(all_polys, all_cents, strict=True)])
 
     kind = np.array([ROCK] * n_rock + wall_kind, np.int32)
     free = np.array([not b.fixed for b in scene.blocks] + [False] * len(walls))
@@ -191,7 +193,7 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
     # Regularisation: a pseudo-mass proportional to a typical contact stiffness.
     k_block = float(np.median(kn_inv[:n_rock]))
     k_ref = L / (L * k_block + 1.0 / float(np.median(joint_kn)))
-    rg2 = np.array([_polar_moment(p, c) for p, c in zip(all_polys, all_cents)])
+    rg2 = np.array([_polar_moment(p, c) for p, c in zip(all_polys, all_cents, strict=True)])
     pseudo_mass = s.regularization * k_ref * np.stack([np.ones(N), np.ones(N), rg2], axis=1)
     f_ref = float(np.max(np.linalg.norm(f_ext[free, :2], axis=1), initial=0.0))
     if f_ref <= 0:
@@ -208,14 +210,16 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
 
     model = Model(
         nv=jnp.asarray(nv), vmask=jnp.asarray(vmask), free=jnp.asarray(free),
-        kind=jnp.asarray(kind), kn_inv=jnp.asarray(kn_inv, dtype), ks_inv=jnp.asarray(ks_inv, dtype),
+        kind=jnp.asarray(kind), kn_inv=jnp.asarray(kn_inv, dtype),
+        ks_inv=jnp.asarray(ks_inv, dtype),
         area=jnp.asarray(np.concatenate([areas, [geometry.signed_area(w) for w in walls]]), dtype),
         radius=jnp.asarray(radius, dtype), f_ext=jnp.asarray(f_ext, dtype),
         edge_joint=jnp.asarray(edge_joint), joint_kn=jnp.asarray(joint_kn, dtype),
         joint_ks=jnp.asarray(joint_ks, dtype), joint_c=jnp.asarray(joint_c, dtype),
         joint_t=jnp.asarray(joint_t, dtype), joint_tanphi=jnp.asarray(joint_tanphi, dtype),
         big=jnp.asarray(big), pseudo_mass=jnp.asarray(pseudo_mass, dtype),
-        f_ref=jnp.asarray(f_ref, dtype), tol=jnp.asarray(max(s.tolerance, _tol_floor(dtype)), dtype),
+        f_ref=jnp.asarray(f_ref, dtype),
+        tol=jnp.asarray(max(s.tolerance, _tol_floor(dtype)), dtype),
         step_length=jnp.asarray(step_length, dtype), margin=jnp.asarray(margin, dtype),
         touch_tol=jnp.asarray(touch_tol, dtype), max_displacement=jnp.asarray(max_disp, dtype),
         cos_parallel=jnp.asarray(math.cos(math.radians(2.0)), dtype),
@@ -231,7 +235,8 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
     )
     layout = Layout(
         n_rock=n_rock, polygons=polys, centroids=cents,
-        walls=[w[:2].copy() for w in walls], monitors=_locate_monitors(scene, polys, cents, tol_geo * 1e3),
+        walls=[w[:2].copy() for w in walls],
+        monitors=_locate_monitors(scene, polys, cents, tol_geo * 1e3),
         length=L, dtype=dtype, load_steps=s.load_steps,
     )
     return model, state, layout

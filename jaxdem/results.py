@@ -150,7 +150,8 @@ def monitor_values(layout, state) -> dict[str, dict[str, Any]]:
             length0 = np.linalg.norm(e)
             e = e / length0
             conv = length0 - np.linalg.norm(now[1] - now[0])
-            out[name] = {"convergence": float(conv), "along": [float(disp[0] @ e), float(disp[1] @ e)]}
+            along = [float(disp[0] @ e), float(disp[1] @ e)]
+            out[name] = {"convergence": float(conv), "along": along}
     return out
 
 

@@ -115,11 +115,14 @@ class _Sub:
     fs_old: jax.Array
     failed: jax.Array
     load: jax.Array
-    touch_tol: jax.Array
 
 
-def _evaluate(model: Model, sub: _Sub, du, frozen, frozen_state):
-    """Spring forces, states and the residual for a trial increment du."""
+def _evaluate(model: Model, sub: _Sub, du, frozen, frozen_state, prev, band):
+    """Spring forces, states and the residual for a trial increment du.
+
+    ``prev`` is the previous iterate's state and ``band`` the open/close
+    hysteresis (kN/m) of :func:`jaxdem.laws.mohr_coulomb`.
+    """
     x = _gather(du, sub.geo)
     dn = jnp.sum(sub.Bn * x, axis=1)
     ds = jnp.sum(sub.Bs * x, axis=1)
@@ -127,7 +130,7 @@ def _evaluate(model: Model, sub: _Sub, du, frozen, frozen_state):
     fn_trial = -sub.prop["kn"] * gap
     fs_trial = sub.fs_old + sub.prop["ks"] * ds
     active = sub.geo["active"]
-    fn, fs, st = mohr_coulomb(fn_trial, fs_trial, sub.prop, sub.failed, active)
+    fn, fs, st = mohr_coulomb(fn_trial, fs_trial, sub.prop, sub.failed, active, prev, band)
     fn_f, fs_f = forces_in_state(fn_trial, fs_trial, sub.prop, sub.failed, frozen_state)
     fn = jnp.where(frozen, fn_f, fn)
     fs = jnp.where(frozen, fs_f, fs)
@@ -144,28 +147,26 @@ def _residual_norm(model: Model, R):
     return jnp.max(jnp.where(model.free, r, 0.0))
 
 
-def _tangent_springs(sub: _Sub, st, gap, consistent):
+def _tangent_springs(sub: _Sub, st, consistent):
     """Normal and shear springs of the iteration matrix K_t.
 
-    Closed slots, and open ones still touching (round-off must not free a
-    block resting on its support), carry both springs: for a slipping slot
-    this is the elastic (secant) stiffness, which keeps every step of the
-    order of the elastic compliance. With ``consistent``, slipping slots lose
-    their shear spring: the tangent of the slip law, used once the elastic
-    iteration has stalled (touching open slots lose it too), so that a
-    sliding mechanism makes a finite move
-    (bounded by the step length) instead of creeping at elastic speed.
+    Closed slots carry both springs: for a slipping slot this is the elastic
+    (secant) stiffness, which keeps every step of the order of the elastic
+    compliance. With ``consistent``, slipping slots lose their shear spring:
+    the tangent of the slip law, used once the elastic iteration has stalled,
+    so that a sliding mechanism makes a finite move (bounded by the step
+    length) instead of creeping at elastic speed.
     """
-    closed = sub.geo["active"] & ((st != OPEN) | (gap <= sub.touch_tol))
+    closed = sub.geo["active"] & (st != OPEN)
     kn = jnp.where(closed, sub.prop["kn"], 0.0)
     ks = jnp.where(closed & ((st == STICK) | ~consistent), sub.prop["ks"], 0.0)
     return kn, ks
 
 
-def _solve_dense(model: Model, sub: _Sub, st, gap, consistent, R):
+def _solve_dense(model: Model, sub: _Sub, st, consistent, R):
     """(K_t + eps M)^-1 R by Cholesky on the assembled (3N, 3N) matrix."""
     N = model.n_blocks
-    kn, ks = _tangent_springs(sub, st, gap, consistent)
+    kn, ks = _tangent_springs(sub, st, consistent)
     Ke = (kn[:, None, None] * sub.Bn[:, :, None] * sub.Bn[:, None, :]
           + ks[:, None, None] * sub.Bs[:, :, None] * sub.Bs[:, None, :])
     a, b = sub.geo["a"], sub.geo["b"]
@@ -178,13 +179,13 @@ def _solve_dense(model: Model, sub: _Sub, st, gap, consistent, R):
     return jax.scipy.linalg.cho_solve(c, R.reshape(-1)).reshape(N, 3)
 
 
-def _solve_cg(model: Model, sub: _Sub, st, gap, consistent, R):
+def _solve_cg(model: Model, sub: _Sub, st, consistent, R):
     """(K_t + eps M)^-1 R by conjugate gradients, matrix-free, block-Jacobi preconditioned.
 
     The product K x is a gather/scatter over the slots: cost and memory linear
     in the number of contacts.
     """
-    kn, ks = _tangent_springs(sub, st, gap, consistent)
+    kn, ks = _tangent_springs(sub, st, consistent)
     pm = jnp.where(model.free[:, None], model.pseudo_mass, 1.0)
 
     def matvec(x):
@@ -209,7 +210,7 @@ def _solve_cg(model: Model, sub: _Sub, st, gap, consistent, R):
     def precond(x):
         return jnp.einsum("nij,nj->ni", Dinv, x)
 
-    x, _ = jax.scipy.sparse.linalg.cg(matvec, R, M=precond, tol=1e-12, maxiter=4 * N + 200)
+    x, _ = jax.scipy.sparse.linalg.cg(matvec, R, M=precond, tol=1e-10, maxiter=4 * N + 200)
     return x
 
 
@@ -229,6 +230,7 @@ def _newton(model: Model, sub: _Sub, st0):
     solve = _solve_dense if model.dense else _solve_cg
     load = jnp.where(model.free, jnp.linalg.norm(sub.load[:, :2], axis=1), 0.0)
     tol = model.tol * jnp.maximum(jnp.max(load), model.f_ref * 1e-3)
+    band = 0.1 * tol
     zeros_s = jnp.zeros(S, jnp.int32)
     allow = 0.02 * model.step_length
 
@@ -236,7 +238,7 @@ def _newton(model: Model, sub: _Sub, st0):
         return ~c["done"]
 
     def body(c):
-        ev = _evaluate(model, sub, c["du"], c["frozen"], c["frozen_state"])
+        ev = _evaluate(model, sub, c["du"], c["frozen"], c["frozen_state"], c["st"], band)
         changed = (ev["state"] != c["st"]) & sub.geo["active"]
         rnorm = _residual_norm(model, ev["R"])
         converged = (rnorm <= tol) & ~jnp.any(changed)
@@ -245,7 +247,7 @@ def _newton(model: Model, sub: _Sub, st0):
         frozen = c["frozen"] | newly
         frozen_state = jnp.where(newly, ev["state"], c["frozen_state"])
         stalled = (rnorm > 0.9 * c["rprev"]) & ~jnp.any(changed)
-        ddu = solve(model, sub, ev["state"], ev["gap"], stalled, ev["R"])
+        ddu = solve(model, sub, ev["state"], stalled, ev["R"])
         t_now = _travel(model, c["du"])
         t_step = _travel(model, ddu)
         room = jnp.maximum(model.step_length - t_now, 0.0)
@@ -275,7 +277,7 @@ def _newton(model: Model, sub: _Sub, st0):
                 finite=jnp.array(True), rnorm=jnp.array(jnp.inf, sub.load.dtype),
                 rprev=jnp.array(jnp.inf, sub.load.dtype))
     c = jax.lax.while_loop(cond, body, init)
-    ev = _evaluate(model, sub, c["du"], c["frozen"], c["frozen_state"])
+    ev = _evaluate(model, sub, c["du"], c["frozen"], c["frozen_state"], c["st"], band)
     return c["du"], ev, c
 
 
@@ -296,7 +298,6 @@ def _substep(model: Model, state: State, lam):
     """Detect contacts, iterate to equilibrium at fixed geometry, commit the motion."""
     N = model.n_blocks
     pairs, count, cell_full = broad_phase(model, state.verts, state.capacity)
-    overflow = (count > state.capacity) | cell_full
     hist = remap_history(state, pairs, N)
     geo = narrow_phase(model, state.verts, state.centroid, pairs)
     prop = slot_properties(model, geo)
@@ -304,10 +305,13 @@ def _substep(model: Model, state: State, lam):
     same = flat(hist["present"]) & (flat(hist["edge"]) == geo["edge"]) & geo["active"]
     failed = jnp.where(same, flat(hist["failed"]), geo["gap"] > model.touch_tol)
     fs_old = jnp.where(same, flat(hist["fs"]), 0.0)
-    st0 = jnp.where(same, flat(hist["cstate"]), OPEN)
+    # A new slot starts closed where its faces touch: round-off in a gap of
+    # zero must not leave a block resting on its support without springs.
+    st0 = jnp.where(same, flat(hist["cstate"]),
+                    jnp.where(geo["gap"] <= model.touch_tol, STICK, OPEN))
     Bn, Bs = b_rows(model, geo, state.centroid)
     sub = _Sub(geo=geo, prop=prop, Bn=Bn, Bs=Bs, fs_old=fs_old, failed=failed,
-               load=lam * model.f_ext, touch_tol=model.touch_tol)
+               load=lam * model.f_ext)
     du, ev, c = _newton(model, sub, st0)
     st = ev["state"]
     active = geo["active"]
@@ -364,13 +368,14 @@ def increment(model: Model, state: State, lam):
         small = jnp.max(_travel(model, du)) <= model.touch_tol
         stuck = jnp.where(newton["converged"] | newton["clipped"], 0, c["stuck"] + 1)
         substeps = c["substeps"] + 1
-        status = jnp.where(
-            overflow, Status.CAPACITY_OVERFLOW,
-            jnp.where(~newton["finite"], Status.NON_FINITE,
-                      jnp.where(newton["converged"] & small, Status.CONVERGED,
-                                jnp.where(jnp.max(travel) > model.max_displacement, Status.MECHANISM,
-                                          jnp.where((stuck >= 3) | (substeps >= model.max_substeps),
-                                                    Status.ITERATION_LIMIT, -1)))))
+        # The first outcome that holds ends the increment; -1 goes on.
+        status = jnp.select(
+            [overflow, ~newton["finite"], newton["converged"] & small,
+             jnp.max(travel) > model.max_displacement,
+             (stuck >= 3) | (substeps >= model.max_substeps)],
+            [Status.CAPACITY_OVERFLOW, Status.NON_FINITE, Status.CONVERGED, Status.MECHANISM,
+             Status.ITERATION_LIMIT],
+            -1)
         keep = overflow | ~newton["finite"]
         new = jax.tree.map(lambda o, n: jnp.where(keep, o, n), c["state"], st_new)
         return dict(state=new, status=status, substeps=substeps, stuck=stuck,

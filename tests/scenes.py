@@ -24,10 +24,11 @@ def slope_base(alpha_deg: float, length: float = 12.0):
 
 
 def rect_on_slope(alpha_deg: float, s0: float, width: float, height: float):
-    """Rectangle of ``width`` along the slope and ``height`` normal to it, from slope coordinate s0."""
+    """Rectangle ``width`` along the slope, ``height`` normal to it, from slope coordinate s0."""
     t, n = incline_frame(alpha_deg)
     p0 = s0 * t
-    return [list(p0), list(p0 + width * t), list(p0 + width * t + height * n), list(p0 + height * n)]
+    corners = [p0, p0 + width * t, p0 + width * t + height * n, p0 + height * n]
+    return [list(c) for c in corners]
 
 
 def block_on_incline(alpha_deg: float, friction_deg: float, *, cohesion: float = 0.0,
