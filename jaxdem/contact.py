@@ -245,7 +245,12 @@ def narrow_phase(model: Model, verts, centroid, pairs):
     S = P * 2 * V
     flat = lambda x: x.reshape((S,) + x.shape[3:])  # noqa: E731
     res = {k: flat(v) for k, v in out.items() if k not in ("h_x", "h_y", "own_edge")}
-    res.update(a=flat(A), b=flat(B), h_a=flat(out["h_x"]), h_b=flat(out["h_y"]), joint=flat(joint))
+    # A centroid on or behind the contact line (a corner reaching round the
+    # end of a face) would give h = 0 and, against a rigid wall, an infinite
+    # spring: h is at least a tenth of the block's radius.
+    h_a = jnp.maximum(out["h_x"], 0.1 * model.radius[A])
+    h_b = jnp.maximum(out["h_y"], 0.1 * model.radius[B])
+    res.update(a=flat(A), b=flat(B), h_a=flat(h_a), h_b=flat(h_b), joint=flat(joint))
     return res
 
 

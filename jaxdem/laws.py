@@ -34,7 +34,9 @@ def slot_properties(model: Model, geo: dict) -> dict:
 
     A slot's spring is k * share (share = its part of the effective length Le).
     Contacts with a rigid wall have no joint term and are bonded (elastic, no
-    strength limit, no opening); roller walls carry no shear.
+    strength limit, no opening) if they touch when first detected; a wall
+    contact that forms later is unilateral and frictional (the joint's
+    friction angle). Roller walls carry no shear.
     """
     a, b, j = geo["a"], geo["b"], geo["joint"]
     wall = (model.kind[a] != 0) | (model.kind[b] != 0)
@@ -75,7 +77,9 @@ def mohr_coulomb(fn_trial, fs_trial, prop: dict, failed, active, prev=None, band
       |Fs| > c * share + Fn tan(phi) (c zero once failed) and then carries
       that limit in the direction of the trial force.
     """
-    bonded = prop["bonded"]
+    # Wall contacts present from the start are bonded; one that forms later
+    # (failed from its first detection) is an ordinary frictional contact.
+    bonded = prop["bonded"] & ~failed
     t_cap = jnp.where(failed, 0.0, prop["tension"])
     c = jnp.where(failed, 0.0, prop["cohesion"])
     if prev is None:

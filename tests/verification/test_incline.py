@@ -104,3 +104,15 @@ def test_threshold_does_not_depend_on_load_steps():
     for steps in (1, 4):
         assert _solve(29, 30, load_steps=steps).stable
         assert not _solve(31, 30, load_steps=steps).stable
+
+
+def test_shear_history_is_carried_across_increments_and_redetection():
+    """Elastic: the same displacement whether the weight comes in 1 or 4 steps.
+
+    Each increment re-detects the contacts; if the accumulated shear force of
+    a spring were lost, the later increments would rebuild it from zero and
+    the block would end further down the slope.
+    """
+    one = _solve(20, 45, load_steps=1).blocks[1]["u"]
+    four = _solve(20, 45, load_steps=4).blocks[1]["u"]
+    np.testing.assert_allclose(four, one, rtol=1e-6)
