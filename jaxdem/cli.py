@@ -2,7 +2,7 @@
 
 ::
 
-    jaxdem demo  [--out DIR]                                   # bundled tunnel scene
+    jaxdem demo  [--out DIR]                                   # bundled demo scene
     jaxdem run   SCENE.toml [--out DIR] [--set PATH=VALUE ...]  # solve, write results
     jaxdem check SCENE.toml [--out DIR]                         # validate, draw blocks
 
@@ -52,7 +52,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     Example::
 
         from jaxdem.cli import main
-        status = main(["run", "tunnel.toml", "--out", "out/tunnel", "--set", "in_situ.k0=1.5"])
+        status = main(["run", "tunnel.toml", "--out", "out/tunnel", "--set", "joints.set1.kn=2e6"])
     """
     parser = _parser()
     try:
@@ -76,7 +76,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    """Solve the bundled tunnel scene ``jaxdem/data/demo.toml``."""
+    """Solve the bundled demo scene ``jaxdem/data/demo.toml``."""
     from importlib import resources
 
     resource = resources.files("jaxdem").joinpath("data", "demo.toml")
@@ -309,7 +309,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
-    demo = sub.add_parser("demo", help="solve the bundled tunnel scene")
+    demo = sub.add_parser("demo", help="solve the bundled demo scene")
     demo.add_argument(
         "--out",
         default=DEFAULT_DEMO_OUT,
