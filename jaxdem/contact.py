@@ -71,8 +71,10 @@ def _boxes_overlap(bi, bj):
     )
 
 
-def broad_phase(model: Model, verts: jax.Array, capacity: int):
+def broad_phase(model: Model, verts: jax.Array, capacity: int, alive: jax.Array | None = None):
     """Candidate pairs (a < b) whose grown boxes overlap and that can move.
+
+    ``alive`` (N,) masks out excavated blocks (default: all present).
 
     Returns:
       pairs: (capacity, 2) int32, empty entries (N, N), sorted by a * N + b.
@@ -82,10 +84,13 @@ def broad_phase(model: Model, verts: jax.Array, capacity: int):
     N = model.n_blocks
     box = bounding_boxes(verts, model.margin)
     ids = jnp.arange(N)
+    if alive is None:
+        alive = jnp.ones(N, bool)
+    movable = model.free & alive
     if not model.use_cells:
         ok = _boxes_overlap(box[:, None, :], box[None, :, :])
-        ok = ok & (ids[:, None] < ids[None, :])
-        ok = ok & (model.free[:, None] | model.free[None, :])
+        ok = ok & (ids[:, None] < ids[None, :]) & alive[:, None] & alive[None, :]
+        ok = ok & (movable[:, None] | movable[None, :])
         count = jnp.sum(ok)
         a, b = jnp.nonzero(ok, size=capacity, fill_value=N)
         pairs = jnp.stack([a, b], axis=-1).astype(jnp.int32)
@@ -112,7 +117,7 @@ def broad_phase(model: Model, verts: jax.Array, capacity: int):
     j = order[jnp.clip(slot, 0, N - 1)].reshape(N, -1)
     ok_cell = inside.reshape(N, -1) & (ids[:, None] < j) & ~is_big[:, None]
     ok_cell = ok_cell & _boxes_overlap(box[:, None, :], box[j])
-    ok_cell = ok_cell & (model.free[:, None] | model.free[j])
+    ok_cell = ok_cell & alive[:, None] & alive[j] & (movable[:, None] | movable[j])
     a_cell = jnp.broadcast_to(ids[:, None], j.shape)
     cand_a = [a_cell.reshape(-1)]
     cand_b = [j.reshape(-1)]
@@ -123,7 +128,8 @@ def broad_phase(model: Model, verts: jax.Array, capacity: int):
         # Big-big pairs once (from the lower id), big-small pairs from the big side.
         once = ~is_big[None, :] | (ids[None, :] > g[:, None])
         ok_big = ok_big & (g[:, None] != ids[None, :]) & once
-        ok_big = ok_big & (model.free[g][:, None] | model.free[None, :])
+        ok_big = ok_big & alive[g][:, None] & alive[None, :]
+        ok_big = ok_big & (movable[g][:, None] | movable[None, :])
         ga = jnp.broadcast_to(g[:, None], ok_big.shape)
         gb = jnp.broadcast_to(ids[None, :], ok_big.shape)
         cand_a.append(jnp.minimum(ga, gb).reshape(-1))
@@ -179,7 +185,10 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ey, cy, not_dup):
     gap = take(d)
     s_e = take(s)
     L_e = jnp.take_along_axis(ly, e, axis=1)
-    in_span = (s_e >= -model.touch_tol) & (s_e <= L_e + model.touch_tol)
+    # A vertex a little past the end of a face still bears on it: blocks whose
+    # corners coincide (a regular grid) shift by joint shear, and the contact
+    # point must not hop to the other block's vertex and lose its history.
+    in_span = (s_e >= -model.span_tol) & (s_e <= L_e + model.span_tol)
     active = vmx & not_dup & (dmax <= model.margin) & in_span
     po = take(par_out)
     pi = take(par_in)
@@ -229,7 +238,7 @@ def narrow_phase(model: Model, verts, centroid, pairs):
     # A vertex of b at a contact point of a vertex of a (within that point's
     # overlap) is the same contact point: it is counted once, from a.
     dv = vb[:, :, None, :] - va[:, None, :, :]
-    reach = 1.5 * jnp.abs(s0["gap"]) + model.touch_tol
+    reach = 1.5 * jnp.abs(s0["gap"]) + model.span_tol
     coincide = jnp.any((jnp.sum(dv * dv, axis=-1) <= reach[:, None, :] ** 2)
                        & s0["active"][:, None, :], axis=-1)
     s1 = _vertex_edge(model, vb, nvb, vmb, cb, ea, ca, ~coincide)
@@ -255,10 +264,10 @@ def narrow_phase(model: Model, verts, centroid, pairs):
 
 
 def remap_history(state: State, new_pairs: jax.Array, n_blocks: int):
-    """Carry each slot's history (shear force, failure, face) to the new pair list.
+    """Carry each slot's history (forces, failure, face) to the new pair list.
 
     Slots are matched by their stable key (pair, side, vertex). Returns the old
-    ``fs``, ``failed``, ``edge``, ``present`` and ``cstate`` arrays laid out
+    ``fs``, ``fn0``, ``failed``, ``edge``, ``present`` and ``cstate`` arrays laid out
     along ``new_pairs`` (empty where the pair is new).
     """
     N1 = n_blocks + 1
@@ -272,6 +281,7 @@ def remap_history(state: State, new_pairs: jax.Array, n_blocks: int):
     pick = lambda x, empty: jnp.where(  # noqa: E731
         hit[:, None, None], x[src], jnp.asarray(empty, x.dtype))
     return dict(
-        fs=pick(state.fs, 0), failed=pick(state.failed, False), edge=pick(state.edge, -1),
+        fs=pick(state.fs, 0), fn0=pick(state.fn0, 0), failed=pick(state.failed, False),
+        edge=pick(state.edge, -1),
         present=pick(state.present, False), cstate=pick(state.cstate, 0),
     )

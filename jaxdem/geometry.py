@@ -24,16 +24,23 @@ __all__ = [
     "centroid",
     "characteristic_length",
     "convex_clip",
+    "convex_decompose",
+    "convex_hull",
     "corner_sines",
+    "distance_to_boundary",
+    "drop_collinear",
     "find_overlapping_pairs",
     "has_repeated_points",
     "is_convex",
     "overlap_area",
     "point_in_polygon",
     "point_on_segment",
+    "polygon_overlap_area",
     "segments_intersect",
     "self_intersects",
     "signed_area",
+    "slice_convex",
+    "split_by_line",
 ]
 
 
@@ -305,3 +312,201 @@ def find_overlapping_pairs(polys: Sequence[np.ndarray], tol_area: float) -> list
                 pairs.append((min(a, b), max(a, b)))
     pairs.sort()
     return pairs
+
+
+# --------------------------------------------------------------------------- cutting and splitting
+
+
+def drop_collinear(v: np.ndarray, tol: float) -> np.ndarray:
+    """``v`` without repeated vertices and without vertices within ``tol`` (m) of the line
+    through their neighbours (180-degree corners); (m, 2), possibly fewer than 3 rows."""
+    pts = [np.asarray(q, dtype=np.float64) for q in _as_poly(v)]
+    changed = True
+    while changed and len(pts) >= 3:
+        changed = False
+        n = len(pts)
+        for k in range(n):
+            a, b, c = pts[k - 1], pts[k], pts[(k + 1) % n]
+            ac = c - a
+            lac = math.hypot(ac[0], ac[1])
+            if math.hypot(*(b - a)) <= tol or math.hypot(*(c - b)) <= tol:
+                del pts[k]
+                changed = True
+                break
+            dist = abs(ac[0] * (b[1] - a[1]) - ac[1] * (b[0] - a[0])) / lac if lac > 0 else 0.0
+            # Only a vertex between its neighbours is a 180-degree corner (not a spike).
+            if dist <= tol and float(np.dot(b - a, c - b)) > 0.0:
+                del pts[k]
+                changed = True
+                break
+    if not pts:
+        return np.zeros((0, 2))
+    return np.array(pts, dtype=np.float64)
+
+
+def split_by_line(
+    v: np.ndarray, normal: np.ndarray, offset: float, tol: float
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Split convex polygon ``v`` by the line ``normal . x = offset`` (m).
+
+    Returns ``(below, above)``: the parts with ``normal . x <= offset`` and ``>= offset``,
+    each convex and counter-clockwise, or None where that side is empty. Vertices within
+    ``tol`` (m, ``normal`` a unit vector) of the line count as on it, so a line that only
+    grazes a corner or runs along an edge does not cut.
+    """
+    v = _as_poly(v)
+    d = v @ np.asarray(normal, dtype=np.float64) - offset
+    d = np.where(np.abs(d) <= tol, 0.0, d)
+    if np.all(d >= 0.0):
+        return None, v
+    if np.all(d <= 0.0):
+        return v, None
+    below: list[np.ndarray] = []
+    above: list[np.ndarray] = []
+    n = len(v)
+    for i in range(n):
+        j = (i + 1) % n
+        di, dj = d[i], d[j]
+        if di <= 0.0:
+            below.append(v[i])
+        if di >= 0.0:
+            above.append(v[i])
+        if (di < 0.0 < dj) or (dj < 0.0 < di):
+            q = v[i] + (di / (di - dj)) * (v[j] - v[i])
+            below.append(q)
+            above.append(q)
+    lo = np.array(below) if len(below) >= 3 else None
+    hi = np.array(above) if len(above) >= 3 else None
+    return lo, hi
+
+
+def slice_convex(
+    v: np.ndarray, normal: np.ndarray, offsets: Sequence[float], tol: float
+) -> list[np.ndarray]:
+    """Convex polygon ``v`` cut by the parallel lines ``normal . x = offsets[k]`` (sorted, m).
+
+    Returns the pieces in order of increasing ``normal . x``; lines that miss ``v`` (or
+    graze it within ``tol``) leave it whole.
+    """
+    out: list[np.ndarray] = []
+    rest: np.ndarray | None = _as_poly(v)
+    for off in offsets:
+        if rest is None:
+            break
+        lo, hi = split_by_line(rest, normal, float(off), tol)
+        if lo is not None and hi is not None:
+            out.append(lo)
+            rest = hi
+        elif lo is not None:  # rest lies wholly below: later lines miss it too
+            break
+    if rest is not None:
+        out.append(rest)
+    return out
+
+
+def convex_hull(points: np.ndarray) -> np.ndarray:
+    """Convex hull of ``points`` (m): counter-clockwise, no collinear points (monotone chain)."""
+    pts = sorted({(float(x), float(y)) for x, y in _as_poly(points)})
+    if len(pts) < 3:
+        return np.array(pts, dtype=np.float64).reshape(-1, 2)
+
+    def half(seq: list[tuple[float, float]]) -> list[tuple[float, float]]:
+        h: list[tuple[float, float]] = []
+        for p in seq:
+            while len(h) >= 2 and _orient(h[-2], h[-1], p) <= 0.0:
+                h.pop()
+            h.append(p)
+        return h
+
+    lower = half(pts)
+    upper = half(pts[::-1])
+    return np.array(lower[:-1] + upper[:-1], dtype=np.float64)
+
+
+def _ray_hit(v: np.ndarray, i: int, tol: float) -> tuple[int, np.ndarray] | None:
+    """Nearest crossing of the ray that extends edge (i-1, i) beyond vertex i with the
+    boundary of ``v``: (edge index j, point)."""
+    n = len(v)
+    b = v[i]
+    d = v[i] - v[i - 1]
+    d = d / math.hypot(d[0], d[1])
+    best: tuple[float, int, np.ndarray] | None = None
+    for j in range(n):
+        if j in ((i - 1) % n, i):
+            continue
+        e0, e1 = v[j], v[(j + 1) % n]
+        e = e1 - e0
+        den = d[0] * (-e[1]) - d[1] * (-e[0])
+        if abs(den) <= 1e-300:
+            continue
+        r = e0 - b
+        t = (r[0] * (-e[1]) - r[1] * (-e[0])) / den
+        u = (d[0] * r[1] - d[1] * r[0]) / den
+        le = math.hypot(e[0], e[1])
+        if t > tol and -tol <= u * le <= le + tol and (best is None or t < best[0]):
+            best = (t, j, b + t * d)
+    return None if best is None else (best[1], best[2])
+
+
+def convex_decompose(v: np.ndarray, tol: float) -> list[np.ndarray]:
+    """Split a simple counter-clockwise polygon into convex CCW pieces (m).
+
+    At each reflex corner the incoming edge is extended into the polygon until it meets
+    the boundary, and the polygon is cut along that chord (for an L shape: one cut along
+    the inner wall). Each cut removes a reflex corner and adds none. ``tol`` (m) merges
+    near-coincident points and 180-degree corners.
+    """
+    out: list[np.ndarray] = []
+    stack = [drop_collinear(v, tol)]
+    while stack:
+        p = stack.pop()
+        if len(p) < 3:
+            continue
+        s = corner_sines(p)
+        reflex = np.nonzero(s < -1e-12)[0]
+        if len(reflex) == 0:
+            out.append(p)
+            continue
+        i = int(reflex[0])
+        hit = _ray_hit(p, i, tol)
+        if hit is None:  # cannot happen for a simple polygon; keep it rather than loop
+            out.append(p)
+            continue
+        j, q = hit
+        n = len(p)
+        a_idx = [(i + k) % n for k in range((j - i) % n + 1)]  # i .. j
+        b_idx = [(j + 1 + k) % n for k in range((i - j - 1) % n + 1)]  # j+1 .. i
+        a = np.vstack([p[a_idx], q[None, :]])
+        b = np.vstack([q[None, :], p[b_idx]])
+        stack.append(drop_collinear(a, tol))
+        stack.append(drop_collinear(b, tol))
+    return out
+
+
+def polygon_overlap_area(a: np.ndarray, b: np.ndarray, tol: float = 0.0) -> float:
+    """Area (m2) common to two simple CCW polygons, convex or not (via convex pieces)."""
+    pa = convex_decompose(a, tol) if not is_convex(a) else [_as_poly(a)]
+    pb = convex_decompose(b, tol) if not is_convex(b) else [_as_poly(b)]
+    total = 0.0
+    for x in pa:
+        bx = bbox(x)
+        for y in pb:
+            by = bbox(y)
+            if bx[0] > by[2] or by[0] > bx[2] or bx[1] > by[3] or by[1] > bx[3]:
+                continue
+            total += overlap_area(x, y)
+    return total
+
+
+def distance_to_boundary(p: np.ndarray, v: np.ndarray) -> float:
+    """Distance (m) from point ``p`` to the boundary of polygon ``v``."""
+    v = _as_poly(v)
+    a = v
+    d = _next(v) - a
+    len2 = np.sum(d * d, axis=1)
+    q = np.asarray(p, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(len2 > 0.0, np.sum((q - a) * d, axis=1) / len2, 0.0)
+    t = np.clip(t, 0.0, 1.0)
+    foot = a + t[:, None] * d
+    return float(np.min(np.hypot(q[0] - foot[:, 0], q[1] - foot[:, 1])))

@@ -46,6 +46,12 @@ class Layout:
       length: median block size L (m).
       dtype: NumPy dtype of the solve.
       load_steps: increments of the load.
+      weight, traction: (N, 3) self-weight and boundary-traction loads.
+      excavation: per rock block, the excavation it lies in (or None).
+      supports: per support, its ``stage``, ``excavation`` and ``force`` (N, 3)
+        at full pressure on the faces of the excavation outline.
+      bolt_stages, bolt_spacing: per bolt, its stage and out-of-plane spacing (m).
+      materials: per rock block, its material name.
     """
 
     n_rock: int
@@ -56,6 +62,13 @@ class Layout:
     length: float
     dtype: type
     load_steps: int
+    weight: np.ndarray
+    traction: np.ndarray
+    excavation: list
+    supports: list
+    bolt_stages: list
+    bolt_spacing: np.ndarray
+    materials: list
 
 
 def _wall_polygon(p0, p1, inside_point, thickness):
@@ -109,6 +122,36 @@ def _edge_joints(polys, V, scene, joint_index, tol):
     return out
 
 
+@dataclasses.dataclass
+class _Piece:
+    """A rock block before layout: explicit, or generated from the rock mass."""
+
+    vertices: np.ndarray
+    material: str
+    fixed: bool
+    excavation: str | None
+    edge_labels: list | None  # generated pieces: per edge ("joint", name) / ("intact", None) / ...
+
+
+def _pieces(scene, tol) -> list[_Piece]:
+    """Explicit blocks (assigned to the excavation holding their centroid) and generated ones."""
+    excavations = getattr(scene, "excavations", ())
+    out = []
+    for b in scene.blocks:
+        v = np.asarray(b.vertices, float)
+        c = geometry.centroid(v)
+        exc = next((e.name for e in excavations
+                    if geometry.point_in_polygon(c, np.asarray(e.vertices, float), tol)), None)
+        out.append(_Piece(v, b.material, bool(b.fixed), exc, None))
+    if getattr(scene, "domain", None) is not None:
+        from jaxdem import rockmass
+
+        for pc in rockmass.generate(scene).pieces:
+            out.append(_Piece(np.asarray(pc.vertices, float), pc.material, False, pc.excavation,
+                              list(pc.edge_labels)))
+    return out
+
+
 def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
     """Lay a validated Scene out as device arrays.
 
@@ -116,16 +159,22 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
     """
     s = scene.solver
     dtype = np.float64 if s.dtype == "float64" else np.float32
-    polys = [np.asarray(b.vertices, float) for b in scene.blocks]
+    allv0 = np.concatenate([np.asarray(b.vertices, float) for b in scene.blocks]
+                           + ([np.asarray(scene.domain.outline, float)]
+                              if getattr(scene, "domain", None) is not None else []))
+    size = float(np.linalg.norm(allv0.max(0) - allv0.min(0)))
+    tol_geo = 1e-9 * size
+    pieces = _pieces(scene, tol_geo * 1e3)
+    polys = [p.vertices for p in pieces]
     n_rock = len(polys)
     areas = np.array([geometry.signed_area(p) for p in polys])
     cents = np.array([geometry.centroid(p) for p in polys])
-    free_rock = np.array([not b.fixed for b in scene.blocks])
-    L = float(np.median(np.sqrt(areas[free_rock] if free_rock.any() else areas)))
+    free_rock = np.array([not p.fixed for p in pieces])
+    kept = free_rock & np.array([p.excavation is None for p in pieces])
+    sizes = np.sqrt(areas[kept] if kept.any() else areas)
+    L = float(np.median(sizes))
     allv = np.concatenate(polys)
     lo, hi = allv.min(0), allv.max(0)
-    size = float(np.linalg.norm(hi - lo))
-    tol_geo = 1e-9 * size
 
     step_length = s.step_length if s.step_length is not None else L / 20.0
     max_disp = s.max_displacement if s.max_displacement is not None else L
@@ -156,43 +205,51 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
                        for p, c in zip(all_polys, all_cents, strict=True)])
 
     kind = np.array([ROCK] * n_rock + wall_kind, np.int32)
-    free = np.array([not b.fixed for b in scene.blocks] + [False] * len(walls))
+    free = np.concatenate([free_rock, np.zeros(len(walls), bool)])
     kn_inv = np.zeros(N)
     ks_inv = np.zeros(N)
-    f_ext = np.zeros((N, 3))
-    for i, b in enumerate(scene.blocks):
-        m = scene.materials[b.material]
+    weight = np.zeros((N, 3))
+    for i, pc in enumerate(pieces):
+        m = scene.materials[pc.material]
         kn_i, ks_i = intact_stiffness(m.E, m.nu)
         kn_inv[i], ks_inv[i] = 1.0 / kn_i, 1.0 / ks_i
-        f_ext[i, 1] = -m.unit_weight * areas[i]
+        weight[i, 1] = -m.unit_weight * areas[i]
+    traction = np.zeros((N, 3))
     for bd in scene.boundaries:
-        if bd.condition != "traction":
-            continue
-        p0, p1 = np.asarray(bd.start, float), np.asarray(bd.end, float)
-        for i, p in enumerate(polys):
-            for a, b in _faces_on_segment(p, p0, p1, tol_geo * 1e3):
-                F = np.asarray(bd.traction, float) * np.linalg.norm(b - a)
-                r = 0.5 * (a + b) - cents[i]
-                f_ext[i] += [F[0], F[1], r[0] * F[1] - r[1] * F[0]]
+        if bd.condition == "traction":
+            traction += _face_loads(polys, cents, N, [(bd.start, bd.end)],
+                                    lambda n, tr=bd.traction: np.asarray(tr, float),
+                                    tol_geo * 1e3)
+    f_ext = weight + traction
 
-    # Joint table; the default joint is repeated last (slots not on a discontinuity).
+    # Joint table: the scene's joints, an intact-rock bond per material, the
+    # default joint last (slots on no labelled face).
     names = list(scene.joints)
+    mats = list(scene.materials)
     joint_index = {name: k for k, name in enumerate(names)}
-    table = [scene.joints[n] for n in names] + [scene.joints[scene.default_joint]] if names else []
-    if not table:  # a single block: no contacts between rock blocks ever form
-        table = [None]
-    jk = lambda f, default: np.array([f(j) if j is not None else default for j in table])  # noqa: E731
-    joint_kn = jk(lambda j: j.kn, 1.0)
-    joint_ks = jk(lambda j: j.ks, 1.0)
-    joint_c = jk(lambda j: j.cohesion, 0.0)
-    joint_t = jk(lambda j: j.tensile_strength, 0.0)
-    joint_tanphi = jk(lambda j: math.tan(math.radians(j.friction_deg)), 0.0)
+    intact_index = {name: len(names) + k for k, name in enumerate(mats)}
+    default = scene.joints[scene.default_joint] if names else None
+    rows = ([(j.kn, j.ks, j.cohesion, j.tensile_strength, j.friction_deg, False)
+             for j in scene.joints.values()]
+            + [(np.inf, np.inf, m.cohesion, m.tensile_strength, m.friction_deg, True)
+               for m in scene.materials.values()]
+            + [(default.kn, default.ks, default.cohesion, default.tensile_strength,
+                default.friction_deg, False) if default else (1.0, 1.0, 0.0, 0.0, 0.0, False)])
+    joint_kn, joint_ks, joint_c, joint_t, phi, joint_intact = (np.array(c) for c in zip(*rows, strict=True))
+    joint_tanphi = np.tan(np.radians(phi))
     edge_joint = _edge_joints(all_polys, V, scene, joint_index, tol_geo * 1e3)
+    for i, pc in enumerate(pieces):
+        for k, (label, name) in enumerate(pc.edge_labels or []):
+            if label == "joint":
+                edge_joint[i, k] = joint_index[name]
+            elif label == "intact":
+                edge_joint[i, k] = intact_index[pc.material]
     edge_joint[n_rock:] = -1
 
     # Regularisation: a pseudo-mass proportional to a typical contact stiffness.
     k_block = float(np.median(kn_inv[:n_rock]))
-    k_ref = L / (L * k_block + 1.0 / float(np.median(joint_kn)))
+    finite_kn = joint_kn[np.isfinite(joint_kn)]
+    k_ref = L / (L * k_block + (1.0 / float(np.median(finite_kn)) if finite_kn.size else 0.0))
     rg2 = np.array([_polar_moment(p, c) for p, c in zip(all_polys, all_cents, strict=True)])
     pseudo_mass = s.regularization * k_ref * np.stack([np.ones(N), np.ones(N), rg2], axis=1)
     f_ref = float(np.max(np.linalg.norm(f_ext[free, :2], axis=1), initial=0.0))
@@ -207,6 +264,9 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
         capacity = _initial_capacity(verts, nv, free, margin, use_cells)
     cell_capacity = _cell_capacity(verts, radius, big, margin) if use_cells else 1
     max_substeps = int(math.ceil(max_disp / step_length)) * 3 + 50
+    bolts = _bolts(scene, polys, cents, pieces, tol_geo * 1e3)
+    water = getattr(scene, "water", None)
+    gamma_w = water.unit_weight if water is not None else 0.0
 
     model = Model(
         nv=jnp.asarray(nv), vmask=jnp.asarray(vmask), free=jnp.asarray(free),
@@ -222,24 +282,95 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
         tol=jnp.asarray(max(s.tolerance, _tol_floor(dtype)), dtype),
         step_length=jnp.asarray(step_length, dtype), margin=jnp.asarray(margin, dtype),
         touch_tol=jnp.asarray(touch_tol, dtype), max_displacement=jnp.asarray(max_disp, dtype),
+        span_tol=jnp.asarray(max(0.01 * L, touch_tol), dtype),
         cos_parallel=jnp.asarray(math.cos(math.radians(2.0)), dtype),
         corner_share=jnp.asarray(0.1, dtype),
+        max_iterations=jnp.asarray(s.max_iterations), max_substeps=jnp.asarray(max_substeps),
+        joint_intact=jnp.asarray(joint_intact.astype(bool)),
+        gamma_w=jnp.asarray(gamma_w, dtype),
+        bolt_blocks=jnp.asarray(bolts["blocks"]),
+        bolt_offsets=jnp.asarray(bolts["offsets"], dtype),
+        bolt_k=jnp.asarray(bolts["k"], dtype), bolt_cap=jnp.asarray(bolts["cap"], dtype),
+        bolt_pullout=jnp.asarray(bolts["pullout"]),
         n_blocks=N, n_vertices=V, n_big=len(big), use_cells=use_cells,
         cell_capacity=cell_capacity, dense=n_rock <= _DENSE_UP_TO,
-        max_iterations=jnp.asarray(s.max_iterations), max_substeps=jnp.asarray(max_substeps),
+        n_bolts=len(bolts["k"]), has_water=water is not None,
     )
     state = State(
         verts=jnp.asarray(verts, dtype), centroid=jnp.asarray(all_cents, dtype),
-        u=jnp.zeros((N, 2), dtype), rot=jnp.zeros(N, dtype),
+        u=jnp.zeros((N, 2), dtype), rot=jnp.zeros(N, dtype), alive=jnp.ones(N, bool),
+        bolt_force=jnp.zeros(len(bolts["k"]), dtype),
+        bolt_state=jnp.zeros(len(bolts["k"]), jnp.int32),
         capacity=capacity, **empty_history(N, capacity, V, dtype),
     )
+    excavation = [pc.excavation for pc in pieces]
+    supports = []
+    for sp in getattr(scene, "supports", ()):
+        exc = next(e for e in scene.excavations if e.name == sp.excavation)
+        outline = np.asarray(exc.vertices, float)
+        segs = list(zip(outline, np.roll(outline, -1, axis=0), strict=True))
+        keep = [i for i in range(n_rock) if excavation[i] != sp.excavation]
+        load = _face_loads([polys[i] if i in keep else None for i in range(n_rock)], cents, N,
+                           segs, lambda n, q=sp.pressure: -q * n, tol_geo * 1e3)
+        supports.append(dict(stage=sp.stage, excavation=sp.excavation, force=load))
     layout = Layout(
         n_rock=n_rock, polygons=polys, centroids=cents,
         walls=[w[:2].copy() for w in walls],
-        monitors=_locate_monitors(scene, polys, cents, tol_geo * 1e3),
+        monitors=_locate_monitors(scene, polys, cents, tol_geo * 1e3, excavation),
         length=L, dtype=dtype, load_steps=s.load_steps,
+        weight=weight, traction=traction, excavation=excavation, supports=supports,
+        bolt_stages=bolts["stages"], bolt_spacing=bolts["spacing"],
+        materials=[pc.material for pc in pieces],
     )
     return model, state, layout
+
+
+def _face_loads(polys, cents, n_blocks, segments, traction_of, tol):
+    """Loads (N, 3) of a traction on the block faces lying on the given segments.
+
+    ``traction_of(n)`` gives the traction (kPa, global x, y) on a face whose
+    outward normal is n; ``polys`` entries of None are skipped.
+    """
+    out = np.zeros((n_blocks, 3))
+    for p0, p1 in segments:
+        p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
+        for i, p in enumerate(polys):
+            if p is None:
+                continue
+            for a, b in _faces_on_segment(p, p0, p1, tol):
+                d = b - a
+                n = np.array([d[1], -d[0]]) / np.linalg.norm(d)
+                if np.dot(0.5 * (a + b) - cents[i], n) < 0:
+                    n = -n
+                F = traction_of(n) * np.linalg.norm(d)
+                r = 0.5 * (a + b) - cents[i]
+                out[i] += [F[0], F[1], r[0] * F[1] - r[1] * F[0]]
+    return out
+
+
+def _bolts(scene, polys, cents, pieces, tol) -> dict:
+    """Bolt anchors: the rock block (not excavated) holding each end, and per-metre properties."""
+    rows = []
+    for b in getattr(scene, "bolts", ()):
+        ends = []
+        for p in (np.asarray(b.start, float), np.asarray(b.end, float)):
+            k = next(i for i, poly in enumerate(polys)
+                     if pieces[i].excavation is None and geometry.point_in_polygon(p, poly, tol))
+            ends.append((k, p - cents[k]))
+        rows.append(dict(blocks=[ends[0][0], ends[1][0]], offsets=[ends[0][1], ends[1][1]],
+                         k=b.stiffness / b.spacing,
+                         cap=min(b.yield_force, b.anchor_capacity) / b.spacing,
+                         pullout=b.anchor_capacity < b.yield_force, stage=b.stage,
+                         spacing=b.spacing))
+    return dict(
+        blocks=np.array([r["blocks"] for r in rows], np.int32).reshape(-1, 2),
+        offsets=np.array([r["offsets"] for r in rows], float).reshape(-1, 2, 2),
+        k=np.array([r["k"] for r in rows], float),
+        cap=np.array([r["cap"] for r in rows], float),
+        pullout=np.array([r["pullout"] for r in rows], bool),
+        stages=[r["stage"] for r in rows],
+        spacing=np.array([r["spacing"] for r in rows], float),
+    )
 
 
 def _tol_floor(dtype) -> float:
@@ -296,15 +427,20 @@ def _cell_capacity(verts, radius, big, margin) -> int:
     return int(2 * counts.max()) + 2
 
 
-def _locate_monitors(scene, polys, cents, tol) -> dict:
-    """The rock block holding each monitored point, and the point's offset from its centroid."""
+def _locate_monitors(scene, polys, cents, tol, excavation) -> dict:
+    """The rock block holding each monitored point, and the point's offset from its centroid.
+
+    A point on a face shared by several blocks goes to the first one that is
+    not excavated.
+    """
     out = {}
     for m in scene.monitors:
         pts = [m.point] if m.kind == "point" else [m.start, m.end]
         blocks, offsets = [], []
         for p in pts:
             p = np.asarray(p, float)
-            k = next(i for i, poly in enumerate(polys) if geometry.point_in_polygon(p, poly, tol))
+            inside = [i for i, poly in enumerate(polys) if geometry.point_in_polygon(p, poly, tol)]
+            k = next((i for i in inside if excavation[i] is None), inside[0])
             blocks.append(k)
             offsets.append(p - cents[k])
         out[m.name] = dict(kind=m.kind, blocks=blocks, offsets=np.array(offsets),

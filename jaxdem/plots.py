@@ -249,7 +249,11 @@ def plot_scene_check(scene: Any, path: str | Path) -> Path:
     written at the centroids when there are fewer than 200 blocks,
     discontinuities drawn by joint, boundaries by condition (fixed: black,
     roller: blue dashed, traction: purple), monitor points and sections
-    labelled.
+    labelled. A scene with ``[domain]`` also shows its generated rock mass
+    (:func:`jaxdem.rockmass.generate`): pieces filled by material, excavated
+    pieces light and hatched, joint edges dark, intact cuts light; bolts as
+    thick lines, supported excavations outlined thick green, the water table
+    as a blue line.
 
     Args:
       scene: a :class:`jaxdem.scene.Scene` (or any object with ``blocks``
@@ -267,15 +271,74 @@ def plot_scene_check(scene: Any, path: str | Path) -> Path:
     materials = [str(_get(b, "material", 1, "")) for b in blocks]
     fixed = np.array([bool(_get(b, "fixed", 2, False)) for b in blocks], dtype=bool)
 
+    pieces: list[Any] = []
+    if getattr(scene, "domain", None) is not None and hasattr(scene, "joints"):
+        from jaxdem.rockmass import generate
+
+        pieces = generate(scene).pieces
+    piece_polys = [np.asarray(p.vertices, dtype=float) for p in pieces]
+    n_all = len(polys) + len(piece_polys)
+
     fig, ax = _figure((9, 7.5))
-    lw = _line_width(len(polys))
+    lw = _line_width(n_all)
     handles: list[Any] = []
 
-    material_names = list(dict.fromkeys(materials))
+    material_names = list(dict.fromkeys(materials + [str(p.material) for p in pieces]))
     colour_of = {
         m: matplotlib.colormaps["Pastel1" if len(material_names) <= 9 else "Set3"](k % 12)
         for k, m in enumerate(material_names)
     }
+    handles += [
+        Patch(facecolor=colour_of[m], edgecolor="0.2", label=f"material {m}")
+        for m in material_names
+    ]
+    if piece_polys:
+        dug = [p.excavation is not None for p in pieces]
+        ax.add_collection(
+            PolyCollection(
+                piece_polys,
+                closed=True,
+                facecolors=[
+                    "white" if d else colour_of[str(p.material)]
+                    for p, d in zip(pieces, dug, strict=True)
+                ],
+                edgecolors="none",
+                alpha=0.85,
+                zorder=1,
+            )
+        )
+        dug_polys = [v for v, d in zip(piece_polys, dug, strict=True) if d]
+        if dug_polys:
+            ax.add_collection(
+                PolyCollection(
+                    dug_polys,
+                    closed=True,
+                    facecolors="none",
+                    edgecolors="0.6",
+                    hatch="..",
+                    linewidths=0.0,
+                    zorder=1.5,
+                )
+            )
+            handles.append(Patch(facecolor="white", edgecolor="0.6", hatch="..", label="excavated"))
+        segs: dict[str, list[np.ndarray]] = {"joint": [], "intact": [], "outer": []}
+        for p, v in zip(pieces, piece_polys, strict=True):
+            w = np.roll(v, -1, axis=0)
+            for k, (kind, _) in enumerate(p.edge_labels):
+                segs[kind].append(np.array([v[k], w[k]]))
+        edge_style = {
+            "intact": ("0.7", 0.5 * lw, "intact rock cut"),
+            "joint": ("0.1", 1.4 * lw, "joint"),
+            "outer": ("0.1", 1.4 * lw, None),
+        }
+        for kind, (colour, width, label) in edge_style.items():
+            if segs[kind]:
+                ax.add_collection(
+                    LineCollection(segs[kind], colors=colour, linewidths=width, zorder=2)
+                )
+                if label:
+                    handles.append(Line2D([], [], color=colour, lw=max(width, 0.8), label=label))
+
     if polys:
         ax.add_collection(
             PolyCollection(
@@ -288,10 +351,6 @@ def plot_scene_check(scene: Any, path: str | Path) -> Path:
                 zorder=1,
             )
         )
-        handles += [
-            Patch(facecolor=colour_of[m], edgecolor="0.2", label=f"material {m}")
-            for m in material_names
-        ]
         fixed_polys = [p for p, f in zip(polys, fixed, strict=True) if f]
         if fixed_polys:
             ax.add_collection(
@@ -306,21 +365,21 @@ def plot_scene_check(scene: Any, path: str | Path) -> Path:
                 )
             )
             handles.append(Patch(facecolor="none", edgecolor="0.2", hatch="///", label="fixed"))
-        if len(polys) < 200:
-            fontsize = 8 if len(polys) < 50 else 6
-            for i, p in enumerate(polys):
-                c = _centroid(p)
-                ax.text(
-                    c[0],
-                    c[1],
-                    str(i),
-                    ha="center",
-                    va="center",
-                    fontsize=fontsize,
-                    fontweight="bold",
-                    color="0.15",
-                    zorder=10,
-                )
+    if n_all < 200:
+        fontsize = 8 if n_all < 50 else 6
+        for i, p in enumerate(polys + piece_polys):
+            c = _centroid(p)
+            ax.text(
+                c[0],
+                c[1],
+                str(i),
+                ha="center",
+                va="center",
+                fontsize=fontsize,
+                fontweight="bold",
+                color="0.15",
+                zorder=10,
+            )
 
     domain = getattr(scene, "domain", None)
     outline = _get(domain, "outline", None, None) if domain is not None else None
@@ -330,13 +389,38 @@ def plot_scene_check(scene: Any, path: str | Path) -> Path:
         ax.plot(ring[:, 0], ring[:, 1], color="0.3", lw=1.0, ls="--", zorder=1)
         handles.append(Line2D([], [], color="0.3", lw=1.0, ls="--", label="domain"))
 
+    excavations = {str(e.name): e for e in getattr(scene, "excavations", None) or []}
+    supported = [str(s.excavation) for s in getattr(scene, "supports", None) or []]
+    for name in dict.fromkeys(supported):
+        if name in excavations:
+            ring = np.asarray(excavations[name].vertices, dtype=float)
+            ring = np.vstack([ring, ring[:1]])
+            ax.plot(ring[:, 0], ring[:, 1], color="tab:green", lw=3.0, zorder=5)
+    if any(name in excavations for name in supported):
+        handles.append(Line2D([], [], color="tab:green", lw=3.0, label="support pressure"))
+
     discontinuities = list(getattr(scene, "discontinuities", None) or [])
     joints = [str(_get(d, "joint", 2, "")) for d in discontinuities]
     for k, joint in enumerate(dict.fromkeys(joints)):
-        segs = [_segment(d) for d, j in zip(discontinuities, joints, strict=True) if j == joint]
+        segs_j = [_segment(d) for d, j in zip(discontinuities, joints, strict=True) if j == joint]
         colour = f"C{(k + 3) % 10}"
-        ax.add_collection(LineCollection(segs, colors=colour, linewidths=1.5, zorder=3))
+        ax.add_collection(LineCollection(segs_j, colors=colour, linewidths=1.5, zorder=3))
         handles.append(Line2D([], [], color=colour, lw=1.5, label=f"joint {joint}"))
+
+    bolts = list(getattr(scene, "bolts", None) or [])
+    if bolts:
+        ax.add_collection(
+            LineCollection(
+                [_segment(b) for b in bolts], colors="tab:brown", linewidths=3.0, zorder=6
+            )
+        )
+        handles.append(Line2D([], [], color="tab:brown", lw=3.0, label="bolt"))
+
+    water = getattr(scene, "water", None)
+    if water is not None:
+        table = np.asarray(water.table, dtype=float)
+        ax.plot(table[:, 0], table[:, 1], color="tab:blue", lw=2.0, zorder=6)
+        handles.append(Line2D([], [], color="tab:blue", lw=2.0, label="water table"))
 
     boundary_style = {
         "fixed": dict(color="k", lw=3.5, ls="-"),
@@ -347,10 +431,12 @@ def plot_scene_check(scene: Any, path: str | Path) -> Path:
     conditions = [str(_get(b, "condition", 2, "fixed")) for b in boundaries]
     for condition in dict.fromkeys(conditions):
         style = boundary_style.get(condition, dict(color="0.4", lw=3.0, ls="-"))
-        segs = [_segment(b) for b, c in zip(boundaries, conditions, strict=True) if c == condition]
+        segs_b = [
+            _segment(b) for b, c in zip(boundaries, conditions, strict=True) if c == condition
+        ]
         ax.add_collection(
             LineCollection(
-                segs,
+                segs_b,
                 colors=style["color"],
                 linewidths=style["lw"],
                 linestyles=style["ls"],
@@ -368,7 +454,7 @@ def plot_scene_check(scene: Any, path: str | Path) -> Path:
         else:
             monitors[name] = np.asarray(_get(m, "point", None), dtype=float)
 
-    everything = polys + [_segment(d) for d in discontinuities]
+    everything = polys + piece_polys + [_segment(d) for d in discontinuities]
     everything += [_segment(b) for b in boundaries]
     size = _model_size(everything)
     handles += _draw_monitors(ax, monitors, size)
@@ -377,7 +463,10 @@ def plot_scene_check(scene: Any, path: str | Path) -> Path:
     name = getattr(scene, "name", None) or "scene"
     n_lines = len(discontinuities)
     lines = "discontinuity" if n_lines == 1 else "discontinuities"
-    ax.set_title(f"{name}: {len(polys)} blocks, {n_lines} {lines}")
+    title = f"{name}: {n_all} blocks"
+    if piece_polys:
+        title += f" ({len(piece_polys)} generated)"
+    ax.set_title(f"{title}, {n_lines} {lines}")
     ax.legend(
         handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False
     )

@@ -48,7 +48,8 @@ class Result:
       moving_blocks: ids of the blocks that kept moving when a mechanism was found.
       equilibrium: global balance of the final state: ``applied`` [Fx, Fy, M]
         (kN/m, kN m/m), ``reaction`` (forces from fixed blocks and walls on the
-        free blocks) and ``imbalance`` (relative: |applied + reaction| / |applied|).
+        free blocks) and ``imbalance``: |applied + reaction| over the larger of the
+        summed load and reaction magnitudes.
       timing: ``build_s``, ``compile_s``, ``solve_s`` (s).
       geometry: plotting data, not written to JSON: ``initial_vertices`` and
         ``final_vertices`` (lists of (n_i, 2) arrays, m), ``fixed`` (bool per
@@ -128,25 +129,29 @@ def _rotate(v: np.ndarray, angle: np.ndarray) -> np.ndarray:
     return np.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], axis=-1)
 
 
-def monitor_values(layout, state) -> dict[str, dict[str, Any]]:
+def _positions(m, state) -> np.ndarray:
+    k = np.asarray(m["blocks"])
+    return np.asarray(state.centroid)[k] + _rotate(m["offsets"], np.asarray(state.rot)[k])
+
+
+def monitor_values(layout, state, ref=None) -> dict[str, dict[str, Any]]:
     """Monitor readings of a state: point displacement or section convergence (m).
 
     A point monitor follows the material point of the rock block that held it
     at the start. A section's convergence is the shortening of the distance
     between its two material points (positive when they approach); ``along``
     is each end's displacement projected on the section direction from -> to.
+    Displacements are measured from ``ref`` (a state), else from the start.
     """
-    cen = np.asarray(state.centroid)
-    rot = np.asarray(state.rot)
     out = {}
     for name, m in layout.monitors.items():
-        k = np.asarray(m["blocks"])
-        now = cen[k] + _rotate(m["offsets"], rot[k])
-        disp = now - m["points"]
+        now = _positions(m, state)
+        disp = now - (m["points"] if ref is None else _positions(m, ref))
         if m["kind"] == "point":
             out[name] = {"displacement": disp[0].tolist()}
         else:
-            e = m["points"][1] - m["points"][0]
+            start = m["points"] if ref is None else _positions(m, ref)
+            e = start[1] - start[0]
             length0 = np.linalg.norm(e)
             e = e / length0
             conv = length0 - np.linalg.norm(now[1] - now[0])
@@ -182,8 +187,14 @@ def block_stress(n_blocks, area, centroid, snap) -> np.ndarray:
     return np.stack([sig[:n_blocks, 0, 0], sig[:n_blocks, 1, 1], sig[:n_blocks, 0, 1]], axis=1)
 
 
-def build_result(scene, model, layout, state, info, increments, history, timing) -> Result:
-    """Assemble the host Result from the final state and the increment records."""
+_BOLT_STATES = {0: "elastic", 1: "yielded", 2: "pulled out"}
+
+
+def build_result(scene, model, layout, state, ref, info, records, history, timing) -> Result:
+    """Assemble the host Result from the final state and the increment records.
+
+    ``ref`` is the state displacements are measured from (None: the start).
+    """
     from jaxdem.solver import Status
 
     nr = layout.n_rock
@@ -191,27 +202,34 @@ def build_result(scene, model, layout, state, info, increments, history, timing)
     status = Status(int(info["status"]))
     travel = np.asarray(info["travel"])[:nr]
     max_disp = float(model.max_displacement)
+    last = records[-1]
     moving = []
     if status == Status.MECHANISM:
         moving = [int(i) for i in np.nonzero(travel > 0.1 * max_disp)[0]]
     stable = status != Status.MECHANISM
     converged = status == Status.CONVERGED
+    where = f"load step {last['step']} of stage {last['stage']}"
     if status == Status.MECHANISM:
         message = (f"{status.message} Moving blocks: {', '.join(map(str, moving))} "
-                   f"(travel over {max_disp:.3g} m in load step {increments[-1]['step']}).")
+                   f"(travel over {max_disp:.3g} m in {where}).")
     elif converged:
-        message = f"{status.message} {len(increments)} load steps, stable."
+        message = f"{status.message} {len(records)} increments, stable."
     else:
-        message = f"{status.message} Stopped in load step {increments[-1]['step']}."
+        message = f"{status.message} Stopped in {where}."
 
     cen = np.asarray(state.centroid)
+    alive = np.asarray(state.alive)[:nr]
     u = np.asarray(state.u)
     rot = np.asarray(state.rot)
+    if ref is not None:
+        u = u - np.asarray(ref.u)
+        rot = rot - np.asarray(ref.rot)
     stress = block_stress(nr, np.asarray(model.area), cen, snap)
     fixed = ~np.asarray(model.free)[:nr]
     blocks = [
         {"id": i, "centroid": layout.centroids[i].tolist(), "u": [u[i, 0], u[i, 1], rot[i]],
-         "stress": stress[i].tolist(), "fixed": bool(fixed[i])}
+         "stress": stress[i].tolist(), "fixed": bool(fixed[i]),
+         **({"excavated": True} if not alive[i] else {})}
         for i in range(nr)
     ]
     act = snap["active"]
@@ -220,32 +238,46 @@ def build_result(scene, model, layout, state, info, increments, history, timing)
                 "slipping": int((st == SLIP).sum())}
     bal = {k: np.asarray(v) for k, v in info["balance"].items()}
     equilibrium = {"applied": bal["applied"].tolist(), "reaction": bal["reaction"].tolist(),
-                   "imbalance": increments[-1]["imbalance"]}
-    monitors = monitor_values(layout, state)
-    stage = {
-        "name": "loading", "converged": converged, "stable": stable,
-        "iterations": [r["iterations"] for r in increments],
-        "substeps": [r["substeps"] for r in increments],
-        "residual": [r["residual"] for r in increments],
-        "imbalance": [r["imbalance"] for r in increments],
-        "monitors": {name: [_scalar(h["monitors"][name]) for h in history] for name in monitors},
-    }
+                   "imbalance": last["imbalance"]}
+    monitors = monitor_values(layout, state, ref)
+    stages = []
+    for name in dict.fromkeys(r["stage"] for r in records):
+        recs = [r for r in records if r["stage"] == name]
+        hist = [h for h in history if h["stage"] == name]
+        stages.append({
+            "name": name,
+            "converged": all(r["status"] == Status.CONVERGED for r in recs),
+            "stable": all(r["status"] != Status.MECHANISM for r in recs),
+            "iterations": [r["iterations"] for r in recs],
+            "substeps": [r["substeps"] for r in recs],
+            "residual": [r["residual"] for r in recs],
+            "imbalance": [r["imbalance"] for r in recs],
+            "monitors": {m: [_scalar(h["monitors"][m]) for h in hist] for m in monitors},
+        })
+    bolt_force = np.asarray(state.bolt_force)
+    bolt_state = np.asarray(state.bolt_state)
+    bolts = [{"id": b, "force": float(bolt_force[b] * layout.bolt_spacing[b]),
+              "force_per_m": float(bolt_force[b]), "state": _BOLT_STATES[int(bolt_state[b])]}
+             for b in range(len(bolt_force))]
     verts = np.asarray(state.verts)
     nv = np.asarray(model.nv)
     geometry = {
         "initial_vertices": layout.polygons,
         "final_vertices": [verts[i, : nv[i]] for i in range(nr)],
         "fixed": fixed,
+        "excavated": ~alive,
         "walls": layout.walls,
         "contacts": {"points": snap["point"][act], "normals": snap["normal"][act], "state": st,
                      "fn": snap["fn"][act], "fs": snap["fs"][act]},
         "monitors": {name: m["points"] for name, m in layout.monitors.items()},
+        "stress": stress,
+        "centroids": cen[:nr],
     }
     hist = [{"stage": h["stage"], "step": h["step"], "load_factor": h["load_factor"],
              "monitors": {k: _scalar(v) for k, v in h["monitors"].items()}} for h in history]
     return Result(
         scene=scene.name, converged=converged, stable=stable, status=status.label,
-        message=message, monitors=monitors, blocks=blocks, contacts=contacts, bolts=[],
-        stages=[stage], moving_blocks=moving, equilibrium=equilibrium, timing=timing,
+        message=message, monitors=monitors, blocks=blocks, contacts=contacts, bolts=bolts,
+        stages=stages, moving_blocks=moving, equilibrium=equilibrium, timing=timing,
         geometry=geometry, history=hist,
     )

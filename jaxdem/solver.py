@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 import time
 
 import jax
@@ -37,7 +38,7 @@ import numpy as np
 
 from jaxdem.contact import broad_phase, narrow_phase, remap_history
 from jaxdem.laws import forces_in_state, mohr_coulomb, slot_properties
-from jaxdem.state import OPEN, SLIP, STICK, Model, State, grow_capacity
+from jaxdem.state import OPEN, SLIP, STICK, Loads, Model, State, grow_capacity
 
 
 class Status(enum.IntEnum):
@@ -73,137 +74,168 @@ def _cross(r, v):
     return r[..., 0] * v[..., 1] - r[..., 1] * v[..., 0]
 
 
-def b_rows(model: Model, geo: dict, centroid):
-    """Rows of B mapping (du_a, du_b) to the relative normal and shear displacement.
+def b_rows(free, a, b, point_a, point_b, direction, centroid):
+    """Rows of B mapping (du_a, du_b) to the relative displacement along ``direction``.
 
-    For direction v at contact point p: v . (u_a + theta_a x r_a) - v . (u_b + theta_b x r_b),
-    r = p - centroid. Parts of blocks without degrees of freedom are zeroed.
-    Returns Bn, Bs: (S, 6).
+    v . (u_a + theta_a x r_a) - v . (u_b + theta_b x r_b), r_a = point_a - c_a,
+    r_b = point_b - c_b (the same point for a contact, the two anchors for a
+    bolt). Parts of blocks without degrees of freedom are zeroed. Returns (M, 6).
     """
-    a, b, p = geo["a"], geo["b"], geo["point"]
-    ra, rb = p - centroid[a], p - centroid[b]
-    fa = model.free[a][:, None].astype(p.dtype)
-    fb = model.free[b][:, None].astype(p.dtype)
-
-    def row(v):
-        pa = jnp.concatenate([v, _cross(ra, v)[:, None]], axis=1) * fa
-        pb = -jnp.concatenate([v, _cross(rb, v)[:, None]], axis=1) * fb
-        return jnp.concatenate([pa, pb], axis=1)
-
-    return row(geo["normal"]), row(geo["tangent"])
+    ra, rb = point_a - centroid[a], point_b - centroid[b]
+    fa = free[a][:, None].astype(ra.dtype)
+    fb = free[b][:, None].astype(ra.dtype)
+    pa = jnp.concatenate([direction, _cross(ra, direction)[:, None]], axis=1) * fa
+    pb = -jnp.concatenate([direction, _cross(rb, direction)[:, None]], axis=1) * fb
+    return jnp.concatenate([pa, pb], axis=1)
 
 
-def _gather(du, geo):
-    return jnp.concatenate([du[geo["a"]], du[geo["b"]]], axis=1)
+def _gather(du, a, b):
+    return jnp.concatenate([du[a], du[b]], axis=1)
 
 
-def _scatter(model: Model, geo, x6):
-    """Sum (S, 6) slot vectors into (N, 3) block vectors."""
-    N = model.n_blocks
-    return (jax.ops.segment_sum(x6[:, :3], geo["a"], N)
-            + jax.ops.segment_sum(x6[:, 3:], geo["b"], N))
+def _scatter(n_blocks, a, b, x6):
+    """Sum (M, 6) row vectors into (N, 3) block vectors."""
+    return (jax.ops.segment_sum(x6[:, :3], a, n_blocks)
+            + jax.ops.segment_sum(x6[:, 3:], b, n_blocks))
 
 
 @dataclasses.dataclass(frozen=True)
 class _Sub:
-    """Everything fixed during one geometry sub-step (not a pytree: lives inside jit)."""
+    """Everything fixed during one geometry sub-step (not a pytree: lives inside jit).
+
+    Contacts: ``geo``, ``prop``, rows ``Bn``, ``Bs`` (S, 6), committed shear
+    force ``fs_old``, initial normal force ``fn0``, ``failed``, water force
+    ``pw`` (S,) (pore pressure x share, on joint slots). Bolts (when the
+    scene has them): ``bolt`` dict with ``a``, ``b``, ``B`` (nb, 6), ``f_old``,
+    ``active``. ``load``: (N, 3) external load. ``free``: (N,) blocks with
+    degrees of freedom (not fixed, not excavated).
+    """
 
     geo: dict
     prop: dict
     Bn: jax.Array
     Bs: jax.Array
     fs_old: jax.Array
+    fn0: jax.Array
     failed: jax.Array
+    pw: jax.Array
+    bolt: dict | None
     load: jax.Array
+    free: jax.Array
+
+
+def _bolt_law(model: Model, sub: _Sub, du):
+    """Bolt axial forces, tension positive: elastic to min(yield, anchor capacity), then plastic."""
+    bolt = sub.bolt
+    elong = jnp.sum(bolt["B"] * _gather(du, bolt["a"], bolt["b"]), axis=1)
+    trial = bolt["f_old"] + model.bolt_k * elong
+    over = jnp.abs(trial) > model.bolt_cap
+    force = jnp.where(bolt["active"], jnp.clip(trial, -model.bolt_cap, model.bolt_cap), 0.0)
+    state = jnp.where(bolt["active"] & over, jnp.where(model.bolt_pullout, 2, 1), 0)
+    return force, state.astype(jnp.int32)
 
 
 def _evaluate(model: Model, sub: _Sub, du, frozen, frozen_state, prev, band):
     """Spring forces, states and the residual for a trial increment du.
 
-    ``prev`` is the previous iterate's state and ``band`` the open/close
-    hysteresis (kN/m) of :func:`jaxdem.laws.mohr_coulomb`.
+    The springs carry the effective normal force fn (compression positive):
+    fn0 - kn * gap, through the tension cut-off and Mohr-Coulomb; the blocks
+    also receive the water force pw on closed joint faces. ``prev`` is the
+    previous iterate's state and ``band`` the open/close hysteresis (kN/m) of
+    :func:`jaxdem.laws.mohr_coulomb`.
     """
-    x = _gather(du, sub.geo)
+    geo = sub.geo
+    x = _gather(du, geo["a"], geo["b"])
     dn = jnp.sum(sub.Bn * x, axis=1)
     ds = jnp.sum(sub.Bs * x, axis=1)
-    gap = sub.geo["gap"] + dn
-    fn_trial = -sub.prop["kn"] * gap
+    gap = geo["gap"] + dn
+    fn_trial = sub.fn0 - sub.prop["kn"] * gap
     fs_trial = sub.fs_old + sub.prop["ks"] * ds
-    active = sub.geo["active"]
+    active = geo["active"]
     fn, fs, st = mohr_coulomb(fn_trial, fs_trial, sub.prop, sub.failed, active, prev, band)
     fn_f, fs_f = forces_in_state(fn_trial, fs_trial, sub.prop, sub.failed, frozen_state)
     fn = jnp.where(frozen, fn_f, fn)
     fs = jnp.where(frozen, fs_f, fs)
     st = jnp.where(frozen, frozen_state, st)
-    internal = _scatter(model, sub.geo, sub.Bn * fn[:, None] - sub.Bs * fs[:, None])
-    R = jnp.where(model.free[:, None], sub.load + internal, 0.0)
-    return dict(fn=fn, fs=fs, state=st, R=R, gap=gap, fn_trial=fn_trial, internal=internal)
+    total_n = fn + jnp.where(st != OPEN, sub.pw, 0.0) if model.has_water else fn
+    internal = _scatter(model.n_blocks, geo["a"], geo["b"],
+                        sub.Bn * total_n[:, None] - sub.Bs * fs[:, None])
+    out = dict(fn=fn, fs=fs, state=st, gap=gap, fn_trial=fn_trial, total_n=total_n)
+    if model.n_bolts:
+        bf, bst = _bolt_law(model, sub, du)
+        bolt = sub.bolt
+        internal = internal + _scatter(model.n_blocks, bolt["a"], bolt["b"],
+                                       -bolt["B"] * bf[:, None])
+        out.update(bolt_force=bf, bolt_state=bst)
+    out["internal"] = internal
+    out["R"] = jnp.where(sub.free[:, None], sub.load + internal, 0.0)
+    return out
 
 
-def _residual_norm(model: Model, R):
+def _residual_norm(model: Model, free, R):
     """max over blocks of max(|Rx|, |Ry|, |M| / radius) (kN/m)."""
     r = jnp.maximum(jnp.abs(R[:, 0]), jnp.abs(R[:, 1]))
     r = jnp.maximum(r, jnp.abs(R[:, 2]) / model.radius)
-    return jnp.max(jnp.where(model.free, r, 0.0))
+    return jnp.max(jnp.where(free, r, 0.0))
 
 
-def _tangent_springs(sub: _Sub, st, consistent):
-    """Normal and shear springs of the iteration matrix K_t.
+def _stiffness_terms(model: Model, sub: _Sub, ev, consistent):
+    """The iteration matrix K_t = sum_m k_m B_m B_m^T as rank-one terms (a, b, B, k).
 
     Closed slots carry both springs: for a slipping slot this is the elastic
     (secant) stiffness, which keeps every step of the order of the elastic
-    compliance. With ``consistent``, slipping slots lose their shear spring:
-    the tangent of the slip law, used once the elastic iteration has stalled,
-    so that a sliding mechanism makes a finite move (bounded by the step
-    length) instead of creeping at elastic speed.
+    compliance. With ``consistent``, slipping slots lose their shear spring
+    (and yielded bolts theirs): the tangent of the slip law, used once the
+    elastic iteration has stalled, so that a sliding mechanism makes a finite
+    move (bounded by the step length) instead of creeping at elastic speed.
     """
+    st = ev["state"]
     closed = sub.geo["active"] & (st != OPEN)
     kn = jnp.where(closed, sub.prop["kn"], 0.0)
     ks = jnp.where(closed & ((st == STICK) | ~consistent), sub.prop["ks"], 0.0)
-    return kn, ks
+    a, b = sub.geo["a"], sub.geo["b"]
+    terms = [(a, b, sub.Bn, kn), (a, b, sub.Bs, ks)]
+    if model.n_bolts:
+        bolt = sub.bolt
+        kb = jnp.where(bolt["active"] & ((ev["bolt_state"] == 0) | ~consistent), model.bolt_k, 0.0)
+        terms.append((bolt["a"], bolt["b"], bolt["B"], kb))
+    return [jnp.concatenate(x) for x in zip(*terms, strict=True)]
 
 
-def _solve_dense(model: Model, sub: _Sub, st, consistent, R):
+def _solve_dense(model: Model, sub: _Sub, terms, R):
     """(K_t + eps M)^-1 R by Cholesky on the assembled (3N, 3N) matrix."""
     N = model.n_blocks
-    kn, ks = _tangent_springs(sub, st, consistent)
-    Ke = (kn[:, None, None] * sub.Bn[:, :, None] * sub.Bn[:, None, :]
-          + ks[:, None, None] * sub.Bs[:, :, None] * sub.Bs[:, None, :])
-    a, b = sub.geo["a"], sub.geo["b"]
+    a, b, B, k = terms
+    Ke = k[:, None, None] * B[:, :, None] * B[:, None, :]
     dofs = jnp.concatenate([3 * a[:, None] + jnp.arange(3), 3 * b[:, None] + jnp.arange(3)], axis=1)
     K = jnp.zeros((3 * N, 3 * N), R.dtype).at[dofs[:, :, None], dofs[:, None, :]].add(Ke)
-    free3 = jnp.repeat(model.free, 3)
+    free3 = jnp.repeat(sub.free, 3)
     diag = jnp.where(free3, model.pseudo_mass.reshape(-1), 1.0)
     K = K + jnp.diag(diag)
     c = jax.scipy.linalg.cho_factor(K)
     return jax.scipy.linalg.cho_solve(c, R.reshape(-1)).reshape(N, 3)
 
 
-def _solve_cg(model: Model, sub: _Sub, st, consistent, R):
+def _solve_cg(model: Model, sub: _Sub, terms, R):
     """(K_t + eps M)^-1 R by conjugate gradients, matrix-free, block-Jacobi preconditioned.
 
-    The product K x is a gather/scatter over the slots: cost and memory linear
-    in the number of contacts.
+    The product K x is a gather/scatter over the springs: cost and memory
+    linear in the number of contacts.
     """
-    kn, ks = _tangent_springs(sub, st, consistent)
-    pm = jnp.where(model.free[:, None], model.pseudo_mass, 1.0)
+    N = model.n_blocks
+    a, b, B, k = terms
+    pm = jnp.where(sub.free[:, None], model.pseudo_mass, 1.0)
 
     def matvec(x):
-        xs = _gather(x, sub.geo)
-        y6 = (sub.Bn * (kn * jnp.sum(sub.Bn * xs, 1))[:, None]
-              + sub.Bs * (ks * jnp.sum(sub.Bs * xs, 1))[:, None])
-        y = _scatter(model, sub.geo, y6)
-        return jnp.where(model.free[:, None], y, 0.0) + pm * x
+        y = _scatter(N, a, b, B * (k * jnp.sum(B * _gather(x, a, b), 1))[:, None])
+        return jnp.where(sub.free[:, None], y, 0.0) + pm * x
 
-    def block(B, k, part):
+    def block(part):
         Bp = B[:, part]
         return k[:, None, None] * Bp[:, :, None] * Bp[:, None, :]
 
-    N = model.n_blocks
-    D = (jax.ops.segment_sum(block(sub.Bn, kn, slice(0, 3)) + block(sub.Bs, ks, slice(0, 3)),
-                             sub.geo["a"], N)
-         + jax.ops.segment_sum(block(sub.Bn, kn, slice(3, 6)) + block(sub.Bs, ks, slice(3, 6)),
-                               sub.geo["b"], N))
+    D = (jax.ops.segment_sum(block(slice(0, 3)), a, N)
+         + jax.ops.segment_sum(block(slice(3, 6)), b, N))
     D = D + jax.vmap(jnp.diag)(pm)
     Dinv = jnp.linalg.inv(D)
 
@@ -225,13 +257,13 @@ def _travel(model: Model, du):
 def _newton(model: Model, sub: _Sub, st0):
     """Newton iteration on du at fixed geometry (one sub-step).
 
-    Returns du, the final evaluation, whether it converged, whether the step
-    length cut it short, and the iteration count.
+    Returns du, the final evaluation, and the loop record (converged, clipped,
+    iteration count, relative residual).
     """
     S = st0.shape[0]
     N = model.n_blocks
     solve = _solve_dense if model.dense else _solve_cg
-    load = jnp.where(model.free, jnp.linalg.norm(sub.load[:, :2], axis=1), 0.0)
+    load = jnp.where(sub.free, jnp.linalg.norm(sub.load[:, :2], axis=1), 0.0)
     tol = model.tol * jnp.maximum(jnp.max(load), model.f_ref * 1e-3)
     band = 0.1 * tol
     zeros_s = jnp.zeros(S, jnp.int32)
@@ -243,14 +275,14 @@ def _newton(model: Model, sub: _Sub, st0):
     def body(c):
         ev = _evaluate(model, sub, c["du"], c["frozen"], c["frozen_state"], c["st"], band)
         changed = (ev["state"] != c["st"]) & sub.geo["active"]
-        rnorm = _residual_norm(model, ev["R"])
+        rnorm = _residual_norm(model, sub.free, ev["R"])
         converged = (rnorm <= tol) & ~jnp.any(changed)
         flips = c["flips"] + changed.astype(jnp.int32)
         newly = (flips >= 4) & ~c["frozen"]
         frozen = c["frozen"] | newly
         frozen_state = jnp.where(newly, ev["state"], c["frozen_state"])
         stalled = (rnorm > 0.9 * c["rprev"]) & ~jnp.any(changed)
-        ddu = solve(model, sub, ev["state"], stalled, ev["R"])
+        ddu = solve(model, sub, _stiffness_terms(model, sub, ev, stalled), ev["R"])
         t_now = _travel(model, c["du"])
         t_step = _travel(model, ddu)
         room = jnp.maximum(model.step_length - t_now, 0.0)
@@ -258,14 +290,13 @@ def _newton(model: Model, sub: _Sub, st0):
         # An open slot may close during the step, but not sink deeper than a
         # small allowance: a free block lands on its support, it does not
         # plunge a whole step length into it.
-        dn_step = jnp.sum(sub.Bn * _gather(ddu, sub.geo), axis=1)
+        dn_step = jnp.sum(sub.Bn * _gather(ddu, sub.geo["a"], sub.geo["b"]), axis=1)
         g_pred = ev["gap"] + dn_step
         landing = sub.geo["active"] & (ev["state"] == OPEN) & (ev["gap"] > 0) & (g_pred < -allow)
         drop = jnp.where(landing, ev["gap"] - g_pred, 1.0)
         s_gap = jnp.min(jnp.where(landing, (ev["gap"] + allow) / drop, 1.0))
         scale = jnp.minimum(s_travel, s_gap)
-        clipped = s_travel <= s_gap
-        clipped = clipped & (s_travel < 1.0)
+        clipped = (s_travel <= s_gap) & (s_travel < 1.0)
         du = jnp.where(converged, c["du"], c["du"] + scale * ddu)
         finite = jnp.all(jnp.isfinite(du))
         it = c["it"] + 1
@@ -284,38 +315,79 @@ def _newton(model: Model, sub: _Sub, st0):
     return c["du"], ev, c
 
 
+def _rotate(r, angle):
+    cos, sin = jnp.cos(angle), jnp.sin(angle)
+    return jnp.stack([cos * r[..., 0] - sin * r[..., 1], sin * r[..., 0] + cos * r[..., 1]], -1)
+
+
 def _move(state: State, du):
     """Exact rigid motion of every block by (ux, uy, theta) about its centroid."""
     th = du[:, 2]
-    cos, sin = jnp.cos(th), jnp.sin(th)
     r = state.verts - state.centroid[:, None, :]
-    rx = cos[:, None] * r[..., 0] - sin[:, None] * r[..., 1]
-    ry = sin[:, None] * r[..., 0] + cos[:, None] * r[..., 1]
     centroid = state.centroid + du[:, :2]
-    verts = centroid[:, None, :] + jnp.stack([rx, ry], axis=-1)
+    verts = centroid[:, None, :] + _rotate(r, th[:, None])
     return dataclasses.replace(state, verts=verts, centroid=centroid,
                                u=state.u + du[:, :2], rot=state.rot + th)
 
 
-def _substep(model: Model, state: State, lam):
+def water_force(model: Model, geo, prop, water_x, water_y):
+    """Pore-pressure force on each joint slot, gamma_w (y_table(x) - y) x share (kN/m).
+
+    Hydrostatic below the table, zero above it; none on intact bonds and walls.
+    """
+    p = geo["point"]
+    head = jnp.interp(p[:, 0], water_x, water_y) - p[:, 1]
+    on_joint = geo["active"] & ~prop["bonded"] & ~model.joint_intact[geo["joint"]]
+    return jnp.where(on_joint, model.gamma_w * jnp.maximum(head, 0.0) * geo["share"], 0.0)
+
+
+def _bolt_geometry(model: Model, state: State):
+    """Bolt rows: anchors at their current positions, direction from anchor 1 to anchor 2."""
+    i, j = model.bolt_blocks[:, 0], model.bolt_blocks[:, 1]
+    p1 = state.centroid[i] + _rotate(model.bolt_offsets[:, 0], state.rot[i])
+    p2 = state.centroid[j] + _rotate(model.bolt_offsets[:, 1], state.rot[j])
+    d = p2 - p1
+    e = d / jnp.maximum(jnp.linalg.norm(d, axis=1, keepdims=True), 1e-300)
+    # Elongation = e . (disp of anchor 2 - disp of anchor 1): anchor 2 is "a".
+    return dict(a=j, b=i, point_a=p2, point_b=p1, e=e)
+
+
+def _substep(model: Model, state: State, loads: Loads):
     """Detect contacts, iterate to equilibrium at fixed geometry, commit the motion."""
     N = model.n_blocks
-    pairs, count, cell_full = broad_phase(model, state.verts, state.capacity)
+    free = model.free & state.alive
+    mdl = dataclasses.replace(model, free=free)
+    pairs, count, cell_full = broad_phase(mdl, state.verts, state.capacity, state.alive)
     hist = remap_history(state, pairs, N)
-    geo = narrow_phase(model, state.verts, state.centroid, pairs)
-    prop = slot_properties(model, geo)
+    geo = narrow_phase(mdl, state.verts, state.centroid, pairs)
+    prop = slot_properties(mdl, geo)
     flat = lambda x: x.reshape(-1)  # noqa: E731
     same = flat(hist["present"]) & (flat(hist["edge"]) == geo["edge"]) & geo["active"]
     failed = jnp.where(same, flat(hist["failed"]), geo["gap"] > model.touch_tol)
     fs_old = jnp.where(same, flat(hist["fs"]), 0.0)
+    fn0 = jnp.where(same, flat(hist["fn0"]), 0.0)
     # A new slot starts closed where its faces touch: round-off in a gap of
     # zero must not leave a block resting on its support without springs.
     st0 = jnp.where(same, flat(hist["cstate"]),
-                    jnp.where(geo["gap"] <= model.touch_tol, STICK, OPEN))
-    Bn, Bs = b_rows(model, geo, state.centroid)
-    sub = _Sub(geo=geo, prop=prop, Bn=Bn, Bs=Bs, fs_old=fs_old, failed=failed,
-               load=lam * model.f_ext)
-    du, ev, c = _newton(model, sub, st0)
+                    jnp.where(geo["gap"] <= model.touch_tol, STICK, OPEN)).astype(jnp.int32)
+    Bn = b_rows(free, geo["a"], geo["b"], geo["point"], geo["point"], geo["normal"],
+                state.centroid)
+    Bs = b_rows(free, geo["a"], geo["b"], geo["point"], geo["point"], geo["tangent"],
+                state.centroid)
+    if model.has_water:
+        pw = water_force(mdl, geo, prop, loads.water_x, loads.water_y)
+    else:
+        pw = jnp.zeros_like(fs_old)
+    bolt = None
+    if model.n_bolts:
+        bg = _bolt_geometry(model, state)
+        alive_b = state.alive[bg["a"]] & state.alive[bg["b"]] & loads.bolt_active
+        bolt = dict(a=bg["a"], b=bg["b"], f_old=state.bolt_force, active=alive_b,
+                    B=b_rows(free, bg["a"], bg["b"], bg["point_a"], bg["point_b"], bg["e"],
+                             state.centroid))
+    sub = _Sub(geo=geo, prop=prop, Bn=Bn, Bs=Bs, fs_old=fs_old, fn0=fn0, failed=failed, pw=pw,
+               bolt=bolt, load=jnp.where(free[:, None], loads.force, 0.0), free=free)
+    du, ev, c = _newton(mdl, sub, st0)
     st = ev["state"]
     active = geo["active"]
     opened = (st == OPEN) & ((prop["tension"] > 0) | (ev["gap"] > model.touch_tol))
@@ -324,32 +396,43 @@ def _substep(model: Model, state: State, lam):
     shape = state.fs.shape
     new_state = dataclasses.replace(
         moved, pairs=pairs, fs=ev["fs"].reshape(shape), fn=ev["fn"].reshape(shape),
-        failed=failed_new.reshape(shape), edge=geo["edge"].reshape(shape),
-        cstate=st.reshape(shape), present=active.reshape(shape))
+        fn0=fn0.reshape(shape), failed=failed_new.reshape(shape),
+        edge=geo["edge"].reshape(shape), cstate=st.reshape(shape),
+        present=active.reshape(shape))
+    if model.n_bolts:
+        new_state = dataclasses.replace(new_state, bolt_force=ev["bolt_force"],
+                                        bolt_state=ev["bolt_state"])
     # Global balance (about the origin) of the free blocks: applied loads and
-    # the forces from blocks without degrees of freedom.
+    # the forces from blocks without degrees of freedom (bolts anchored in
+    # them included).
     c_xy = state.centroid
     moment = lambda F: F[:, 2] + _cross(c_xy, F[:, :2])  # noqa: E731
-    applied = jnp.where(model.free[:, None], sub.load, 0.0)
     a, b = geo["a"], geo["b"]
-    f_on_a = Bn[:, :3] * ev["fn"][:, None] - Bs[:, :3] * ev["fs"][:, None]
-    f_on_b = Bn[:, 3:] * ev["fn"][:, None] - Bs[:, 3:] * ev["fs"][:, None]
-    from_fixed_a = jnp.where((~model.free[b])[:, None], f_on_a, 0.0)
-    from_fixed_b = jnp.where((~model.free[a])[:, None], f_on_b, 0.0)
-    reaction = (jax.ops.segment_sum(from_fixed_a, a, N) + jax.ops.segment_sum(from_fixed_b, b, N))
+    f_row = Bn * ev["total_n"][:, None] - Bs * ev["fs"][:, None]
+    reaction = (jax.ops.segment_sum(jnp.where((~free[b])[:, None], f_row[:, :3], 0.0), a, N)
+                + jax.ops.segment_sum(jnp.where((~free[a])[:, None], f_row[:, 3:], 0.0), b, N))
+    if model.n_bolts:
+        rows = -bolt["B"] * ev["bolt_force"][:, None]
+        reaction = reaction + (
+            jax.ops.segment_sum(jnp.where((~free[bolt["b"]])[:, None], rows[:, :3], 0.0),
+                                bolt["a"], N)
+            + jax.ops.segment_sum(jnp.where((~free[bolt["a"]])[:, None], rows[:, 3:], 0.0),
+                                  bolt["b"], N))
     balance = dict(
-        applied=jnp.stack([applied[:, 0].sum(), applied[:, 1].sum(), moment(applied).sum()]),
+        applied=jnp.stack([sub.load[:, 0].sum(), sub.load[:, 1].sum(), moment(sub.load).sum()]),
         reaction=jnp.stack([reaction[:, 0].sum(), reaction[:, 1].sum(), moment(reaction).sum()]),
+        scale=jnp.maximum(jnp.sum(jnp.linalg.norm(reaction[:, :2], axis=1)),
+                          jnp.sum(jnp.linalg.norm(sub.load[:, :2], axis=1))),
     )
     snapshot = dict(point=geo["point"], normal=geo["normal"], a=a, b=b, active=active,
-                    fn=ev["fn"], fs=ev["fs"], state=st)
+                    fn=ev["fn"], fs=ev["fs"], pw=ev["total_n"] - ev["fn"], state=st)
     need = dict(pairs=count, cell_full=cell_full)
     return new_state, du, c, need, balance, snapshot
 
 
 @jax.jit
-def increment(model: Model, state: State, lam):
-    """One load increment at load factor ``lam``: geometry sub-steps until equilibrium.
+def increment(model: Model, state: State, loads: Loads):
+    """One load increment: geometry sub-steps until equilibrium under ``loads``.
 
     Returns (state, info): info holds ``status`` (a Status value), ``iterations``
     (Newton iterations), ``substeps``, ``residual`` (relative), ``travel``
@@ -358,14 +441,14 @@ def increment(model: Model, state: State, lam):
     """
     N = model.n_blocks
     dtype = state.verts.dtype
-    _, _, _, _, balance0, snap0 = jax.eval_shape(_substep, model, state, lam)
+    _, _, _, _, balance0, snap0 = jax.eval_shape(_substep, model, state, loads)
     zeros_like = lambda t: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), t)  # noqa: E731
 
     def cond(c):
         return c["status"] < 0
 
     def body(c):
-        st_new, du, newton, need, balance, snap = _substep(model, c["state"], lam)
+        st_new, du, newton, need, balance, snap = _substep(model, c["state"], loads)
         overflow = (need["pairs"] > state.capacity) | need["cell_full"]
         travel = c["travel"] + _travel(model, du)
         small = jnp.max(_travel(model, du)) <= model.touch_tol
@@ -415,18 +498,17 @@ def _compiled_increment(model: Model, state: State, lam):
     return fn, time.perf_counter() - t0
 
 
-def run_increment(model: Model, state: State, lam):
+def run_increment(model: Model, state: State, loads: Loads):
     """One increment with capacity growth: on overflow, grow and redo from ``state``.
 
     Returns (model, state, info, compile_s): the model changes only when a
     grid cell capacity grew. Growing recompiles; nothing is ever truncated.
     """
     compile_s = 0.0
-    lam = jnp.asarray(lam, state.verts.dtype)
     while True:
-        fn, dt = _compiled_increment(model, state, lam)
+        fn, dt = _compiled_increment(model, state, loads)
         compile_s += dt
-        new, info = fn(model, state, lam)
+        new, info = fn(model, state, loads)
         if int(info["status"]) != Status.CAPACITY_OVERFLOW:
             return model, new, info, compile_s
         if bool(info["cell_full"]):
@@ -437,14 +519,142 @@ def run_increment(model: Model, state: State, lam):
 
 
 def _imbalance(balance) -> float:
-    """|applied + reaction| / |applied| of the forces on the free blocks (relative)."""
+    """Global force balance of the free blocks, relative.
+
+    |applied + reaction| over the larger of the summed magnitudes of the
+    block loads and of the reactions (forces from fixed blocks, walls and
+    their bolts), so that it stays meaningful when the loads cancel out (an
+    in-situ state held by walls on all sides).
+    """
     applied = np.asarray(balance["applied"][:2])
     reaction = np.asarray(balance["reaction"][:2])
-    return float(np.linalg.norm(applied + reaction) / max(np.linalg.norm(applied), 1e-300))
+    return float(np.linalg.norm(applied + reaction) / max(float(balance["scale"]), 1e-300))
+
+
+@functools.partial(jax.jit, static_argnames=("mode",))
+def _preload(model: Model, state: State, loads: Loads, sigma, surface_y, gamma, k0, mode: str):
+    """Contacts at the start with the forces of the in-situ stress field (zero displacement).
+
+    Each touching spring gets the traction of the stress tensor (compression
+    positive) on its face: fn0 = n.sigma.n x share (minus the pore pressure:
+    springs carry effective force) and fs = -t.sigma.n x share. ``mode``
+    "gravity": sigma_yy = gamma (surface_y - y), sigma_xx = k0 sigma_yy;
+    "uniform": ``sigma`` = (sxx, syy, sxy).
+    """
+    pairs, count, cell_full = broad_phase(model, state.verts, state.capacity, state.alive)
+    geo = narrow_phase(model, state.verts, state.centroid, pairs)
+    prop = slot_properties(model, geo)
+    p, n, t = geo["point"], geo["normal"], geo["tangent"]
+    if mode == "gravity":
+        syy = gamma * jnp.maximum(surface_y - p[:, 1], 0.0)
+        sxx, sxy = k0 * syy, jnp.zeros_like(syy)
+    else:
+        sxx, syy, sxy = (jnp.broadcast_to(sigma[k], p[:, 0].shape) for k in range(3))
+    tx = sxx * n[:, 0] + sxy * n[:, 1]
+    ty = sxy * n[:, 0] + syy * n[:, 1]
+    touching = geo["active"] & (geo["gap"] <= model.touch_tol)
+    pw = water_force(model, geo, prop, loads.water_x, loads.water_y) if model.has_water else 0.0
+    fn0 = jnp.where(touching, (tx * n[:, 0] + ty * n[:, 1]) * geo["share"] - pw, 0.0)
+    fs = jnp.where(touching, -(tx * t[:, 0] + ty * t[:, 1]) * geo["share"], 0.0)
+    shape = state.fs.shape
+    new = dataclasses.replace(
+        state, pairs=pairs, fn0=fn0.reshape(shape), fn=fn0.reshape(shape), fs=fs.reshape(shape),
+        failed=(geo["gap"] > model.touch_tol).reshape(shape), edge=geo["edge"].reshape(shape),
+        cstate=jnp.where(touching, STICK, OPEN).astype(jnp.int32).reshape(shape),
+        present=geo["active"].reshape(shape))
+    return new, (count > state.capacity) | cell_full
+
+
+def make_loads(model: Model, force, water_x=None, water_y=None, bolt_active=None) -> Loads:
+    """Loads for one increment: block forces (N, 3), optional water table and bolt switches."""
+    dtype = model.radius.dtype
+    no_water = jnp.array([0.0, 1.0], dtype), jnp.array([-1e30, -1e30], dtype)
+    return Loads(
+        force=jnp.asarray(force, dtype),
+        water_x=no_water[0] if water_x is None else jnp.asarray(water_x, dtype),
+        water_y=no_water[1] if water_y is None else jnp.asarray(water_y, dtype),
+        bolt_active=(jnp.ones(model.n_bolts, bool) if bolt_active is None
+                     else jnp.asarray(bolt_active)))
+
+
+class _Driver:
+    """Host loop over stages and load steps; collects the records of a Result."""
+
+    def __init__(self, model, state, layout, scene, progress):
+        self.model, self.state, self.layout = model, state, layout
+        self.scene, self.progress = scene, progress
+        self.compile_s = self.solve_s = 0.0
+        self.records, self.history = [], []
+        self.info = None
+        self.status = Status.CONVERGED
+        nb = model.n_bolts
+        self.bolt_active = np.zeros(nb, bool)
+        water = getattr(scene, "water", None)
+        tables = ([water.table] if water is not None else []) + [
+            st.water_table for st in getattr(scene, "stages", ()) if st.water_table is not None]
+        xs = np.unique(np.concatenate([np.asarray(t, float)[:, 0] for t in tables])) \
+            if tables else np.array([0.0, 1.0])
+        self.water_x = xs
+        self.water_y = (np.interp(xs, *np.asarray(water.table, float).T)
+                        if water is not None else np.full(xs.shape, -1e30))
+
+    def loads(self, force, water_y=None):
+        wy = self.water_y if water_y is None else water_y
+        return make_loads(self.model, force, self.water_x, wy, self.bolt_active)
+
+    def step(self, stage, k, n, loads):
+        from jaxdem.results import monitor_values
+
+        t1 = time.perf_counter()
+        self.model, self.state, info, dt = run_increment(self.model, self.state, loads)
+        jax.block_until_ready(self.state.verts)
+        self.compile_s += dt
+        self.solve_s += time.perf_counter() - t1 - dt
+        self.info = info
+        self.status = Status(int(info["status"]))
+        rec = dict(stage=stage, step=k, load_factor=k / n, status=self.status,
+                   iterations=int(info["iterations"]), substeps=int(info["substeps"]),
+                   residual=float(info["residual"]), imbalance=_imbalance(info["balance"]))
+        self.records.append(rec)
+        self.history.append(dict(stage=stage, step=k, load_factor=k / n,
+                                 monitors=monitor_values(self.layout, self.state,
+                                                         getattr(self, "ref", None))))
+        if self.progress is not None:
+            self.progress(dict(stage=stage, step=k, n_steps=n, status=self.status.label,
+                               iterations=rec["iterations"], substeps=rec["substeps"],
+                               residual=rec["residual"]))
+        return self.status == Status.CONVERGED
+
+
+def _excavation_release(layout, state, snapshot, removed):
+    """Forces (N, 3) that the blocks being removed exert on the others (host, from the snapshot)."""
+    snap = {k: np.asarray(v) for k, v in snapshot.items()}
+    cen = np.asarray(state.centroid)
+    out = np.zeros((cen.shape[0], 3))
+    act = snap["active"]
+    a, b, p, n = snap["a"][act], snap["b"][act], snap["point"][act], snap["normal"][act]
+    t = np.stack([-n[:, 1], n[:, 0]], axis=1)
+    F = (snap["fn"][act] + snap["pw"][act])[:, None] * n - snap["fs"][act][:, None] * t
+    for on, by, sign in ((a, b, 1.0), (b, a, -1.0)):
+        sel = removed[by] & ~removed[on]
+        r = p[sel] - cen[on[sel]]
+        f = sign * F[sel]
+        np.add.at(out, on[sel], np.stack([f[:, 0], f[:, 1], r[:, 0] * f[:, 1] - r[:, 1] * f[:, 0]],
+                                         axis=1))
+    return out
 
 
 def solve(scene, set: dict | None = None, progress=None):
-    """Solve a scene: load steps of self-weight and tractions, each to static equilibrium.
+    """Solve a scene: load steps, in-situ stress and stages, each to static equilibrium.
+
+    Without ``[in_situ]`` the scene starts unloaded and self-weight and
+    tractions are applied over ``solver.load_steps`` increments. With it, the
+    contacts start with the in-situ stress (zero displacement). Then each
+    stage (``[[stages]]``, or one stage when the scene has excavations,
+    supports or bolts but no stages) removes its excavations, whose forces on
+    the remaining rock are released over the stage's load steps, installs its
+    bolts, ramps its support pressures and moves the water table.
+    Displacements are reported from the state before the first stage.
 
     Args:
       scene: a validated :class:`jaxdem.scene.Scene` (from :func:`jaxdem.load_scene`).
@@ -462,7 +672,7 @@ def solve(scene, set: dict | None = None, progress=None):
         print(result.stable, result.monitors)
     """
     from jaxdem import model as model_mod
-    from jaxdem.results import build_result, monitor_values
+    from jaxdem.results import build_result
 
     if set:
         scene = scene.with_overrides(set)
@@ -470,30 +680,81 @@ def solve(scene, set: dict | None = None, progress=None):
     model, state, layout = model_mod.build(scene)
     jax.block_until_ready(state.verts)
     build_s = time.perf_counter() - t0
-    compile_s = solve_s = 0.0
-    n = layout.load_steps
-    history, increments = [], []
-    info = None
-    for k in range(1, n + 1):
-        lam = k / n
-        t1 = time.perf_counter()
-        model, state, info, dt = run_increment(model, state, lam)
-        status = Status(int(info["status"]))
-        jax.block_until_ready(state.verts)
-        compile_s += dt
-        solve_s += time.perf_counter() - t1 - dt
-        increments.append(dict(step=k, load_factor=lam, status=status,
-                               iterations=int(info["iterations"]),
-                               substeps=int(info["substeps"]),
-                               residual=float(info["residual"]),
-                               imbalance=_imbalance(info["balance"])))
-        history.append(dict(stage="loading", step=k, load_factor=lam,
-                            monitors=monitor_values(layout, state)))
-        if progress is not None:
-            progress(dict(stage="loading", step=k, n_steps=n, status=status.label,
-                          iterations=int(info["iterations"]), substeps=int(info["substeps"]),
-                          residual=float(info["residual"])))
-        if status != Status.CONVERGED:
+    d = _Driver(model, state, layout, scene, progress)
+    n_rock = layout.n_rock
+    N = model.n_blocks
+    in_situ = getattr(scene, "in_situ", None)
+    base = np.zeros((N, 3))
+    pending = np.zeros((N, 3))  # applied over the first stage (uniform in-situ mode)
+    if in_situ is None:
+        n = layout.load_steps
+        for k in range(1, n + 1):
+            if not d.step("loading", k, n, d.loads(k / n * (layout.weight + layout.traction))):
+                break
+        base = layout.weight + layout.traction
+    else:
+        if in_situ.mode == "gravity":
+            base = layout.weight + layout.traction
+            mats = [layout.materials[i] for i in range(n_rock) if layout.excavation[i] is None]
+            gamma = scene.materials[scene.domain.material if scene.domain else mats[0]].unit_weight
+            surface = in_situ.surface_y
+        else:
+            base, pending = layout.traction, layout.weight
+            gamma = surface = 0.0
+        sigma = jnp.asarray([in_situ.sigma_xx, in_situ.sigma_yy, in_situ.sigma_xy], layout.dtype)
+        while True:
+            st, overflow = _preload(d.model, d.state, d.loads(base), sigma, surface, gamma,
+                                    in_situ.k0, mode=in_situ.mode)
+            if not bool(overflow):
+                break
+            d.state = grow_capacity(d.state, 2 * d.state.capacity)
+        d.state = st
+        d.step("initial", 1, 1, d.loads(base))
+    plan = _stage_plan(scene)
+    d.ref = d.state if (plan or in_situ is not None) else None
+    for stage in plan:
+        if d.status != Status.CONVERGED:
             break
-    timing = dict(build_s=build_s, compile_s=compile_s, solve_s=solve_s)
-    return build_result(scene, model, layout, state, info, increments, history, timing)
+        removed = np.zeros(N, bool)
+        removed[:n_rock] = [e is not None and e in stage["excavations"] for e in layout.excavation]
+        release = _excavation_release(layout, d.state, d.info["snapshot"], removed) \
+            if removed.any() and d.info is not None else np.zeros((N, 3))
+        if removed.any():
+            alive = np.asarray(d.state.alive) & ~removed
+            d.state = dataclasses.replace(d.state, alive=jnp.asarray(alive))
+        for b, bs in enumerate(layout.bolt_stages):
+            if bs == stage["name"] or (bs is None and stage["first"]):
+                d.bolt_active[b] = True
+        support = sum((sp["force"] for sp in layout.supports
+                       if sp["stage"] == stage["name"] or (sp["stage"] is None and stage["first"])),
+                      np.zeros((N, 3)))
+        y_old, y_new = d.water_y, d.water_y
+        if stage["water_table"] is not None:
+            y_new = np.interp(d.water_x, *np.asarray(stage["water_table"], float).T)
+        n = stage["load_steps"] or layout.load_steps
+        for k in range(1, n + 1):
+            lam = k / n
+            force = base + (1 - lam) * release + lam * (pending + support)
+            if not d.step(stage["name"], k, n, d.loads(force, (1 - lam) * y_old + lam * y_new)):
+                break
+        base, pending = base + pending + support, np.zeros((N, 3))
+        d.water_y = y_new
+    timing = dict(build_s=build_s, compile_s=d.compile_s, solve_s=d.solve_s)
+    return build_result(scene, d.model, layout, d.state, d.ref, d.info, d.records, d.history,
+                        timing)
+
+
+def _stage_plan(scene) -> list[dict]:
+    """The stages after the initial state, in order, with what each one does."""
+    excavations = getattr(scene, "excavations", ())
+    stages = list(getattr(scene, "stages", ()))
+    if not stages and (excavations or getattr(scene, "supports", ())
+                       or getattr(scene, "bolts", ())):
+        return [dict(name="excavation", first=True, load_steps=None, water_table=None,
+                     excavations={e.name for e in excavations})]
+    first = stages[0].name if stages else None
+    return [dict(name=st.name, first=st.name == first, load_steps=st.load_steps,
+                 water_table=st.water_table,
+                 excavations={e.name for e in excavations
+                              if e.stage == st.name or (e.stage is None and st.name == first)})
+            for st in stages]

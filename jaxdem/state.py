@@ -40,9 +40,13 @@ def _pytree(data: list[str], meta: list[str]):
         "nv", "vmask", "free", "kind", "kn_inv", "ks_inv", "area", "radius", "f_ext",
         "edge_joint", "joint_kn", "joint_ks", "joint_c", "joint_t", "joint_tanphi",
         "big", "pseudo_mass", "f_ref", "tol", "step_length", "margin", "touch_tol",
-        "max_displacement", "cos_parallel", "corner_share", "max_iterations", "max_substeps",
+        "max_displacement", "span_tol", "cos_parallel", "corner_share", "max_iterations",
+        "max_substeps",
+        "joint_intact", "gamma_w", "bolt_blocks", "bolt_offsets", "bolt_k", "bolt_cap",
+        "bolt_pullout",
     ],
-    meta=["n_blocks", "n_vertices", "n_big", "use_cells", "cell_capacity", "dense"],
+    meta=["n_blocks", "n_vertices", "n_big", "use_cells", "cell_capacity", "dense", "n_bolts",
+          "has_water"],
 )
 @dataclasses.dataclass(frozen=True)
 class Model:
@@ -70,14 +74,23 @@ class Model:
         block in one geometry sub-step. margin: m, contact detection distance
         (open springs within it may close during a sub-step). touch_tol: m,
         gap under which faces are in contact. max_displacement: m, travel in
-        one increment beyond which a block is moving (a mechanism).
+        one increment beyond which a block is moving (a mechanism). span_tol: m,
+        how far past the end of a face a vertex still bears on it (0.01 L).
       cos_parallel: faces closer than this cosine to anti-parallel are an
         edge-to-edge contact. corner_share: effective length of a
         corner-to-edge point as a fraction of its shorter adjacent edge.
       max_iterations: Newton iterations per geometry sub-step.
       max_substeps: geometry sub-steps per increment.
-      n_blocks, n_vertices, n_big, cell_capacity: static sizes (N, V, ...).
+      joint_intact: (J,) bool, the entry is an intact-rock bond (no water on it).
+      gamma_w: scalar kN/m3, unit weight of water (0 when the scene has none).
+      bolt_blocks: (B, 2) int32, blocks holding the two anchors of each bolt.
+      bolt_offsets: (B, 2, 2) m, anchors relative to those centroids at rotation 0.
+      bolt_k: (B,) kN/m per m, axial stiffness / spacing.
+      bolt_cap: (B,) kN/m, min(yield force, anchor capacity) / spacing.
+      bolt_pullout: (B,) bool, the anchor capacity governs (pull-out, else yield).
+      n_blocks, n_vertices, n_big, cell_capacity, n_bolts: static sizes.
       use_cells: grid broad phase (else all pairs). dense: Cholesky (else CG).
+      has_water: the scene has a water table (else no pore-pressure code is compiled).
     """
 
     nv: jax.Array
@@ -103,21 +116,31 @@ class Model:
     margin: jax.Array
     touch_tol: jax.Array
     max_displacement: jax.Array
+    span_tol: jax.Array
     cos_parallel: jax.Array
     corner_share: jax.Array
     max_iterations: jax.Array
     max_substeps: jax.Array
+    joint_intact: jax.Array
+    gamma_w: jax.Array
+    bolt_blocks: jax.Array
+    bolt_offsets: jax.Array
+    bolt_k: jax.Array
+    bolt_cap: jax.Array
+    bolt_pullout: jax.Array
     n_blocks: int
     n_vertices: int
     n_big: int
     use_cells: bool
     cell_capacity: int
     dense: bool
+    n_bolts: int = 0
+    has_water: bool = False
 
 
 @_pytree(
-    data=["verts", "centroid", "u", "rot", "pairs", "fs", "fn", "failed", "edge", "cstate",
-          "present"],
+    data=["verts", "centroid", "u", "rot", "alive", "pairs", "fs", "fn", "fn0", "failed", "edge",
+          "cstate", "present", "bolt_force", "bolt_state"],
     meta=["capacity"],
 )
 @dataclasses.dataclass(frozen=True)
@@ -129,13 +152,17 @@ class State:
       centroid: (N, 2) m, current centroids.
       u: (N, 2) m, centroid displacement since the start.
       rot: (N,) rad, rotation since the start (counter-clockwise positive).
+      alive: (N,) bool, the block has not been excavated.
       pairs: (P, 2) int32 candidate pairs (a < b); empty entries hold (N, N).
       fs: (P, 2, V) kN/m, shear spring force along the contacted edge's tangent.
-      fn: (P, 2, V) kN/m, normal force (compression positive), for output.
+      fn: (P, 2, V) kN/m, effective normal force (compression positive), for output.
+      fn0: (P, 2, V) kN/m, initial (in-situ) normal force of the spring at zero gap.
       failed: (P, 2, V) bool, the contact lost its cohesion and tensile strength.
       edge: (P, 2, V) int32, contacted edge of the other block.
       cstate: (P, 2, V) int32, OPEN, STICK or SLIP.
       present: (P, 2, V) bool, the slot was within the detection margin.
+      bolt_force: (B,) kN/m, axial bolt force (tension positive).
+      bolt_state: (B,) int32, 0 elastic, 1 yielded, 2 pulled out.
       capacity: P, static.
     """
 
@@ -143,13 +170,17 @@ class State:
     centroid: jax.Array
     u: jax.Array
     rot: jax.Array
+    alive: jax.Array
     pairs: jax.Array
     fs: jax.Array
     fn: jax.Array
+    fn0: jax.Array
     failed: jax.Array
     edge: jax.Array
     cstate: jax.Array
     present: jax.Array
+    bolt_force: jax.Array
+    bolt_state: jax.Array
     capacity: int
 
 
@@ -160,6 +191,7 @@ def empty_history(n_blocks: int, capacity: int, n_vertices: int, dtype) -> dict:
         pairs=jnp.full((capacity, 2), n_blocks, jnp.int32),
         fs=jnp.zeros(shape, dtype),
         fn=jnp.zeros(shape, dtype),
+        fn0=jnp.zeros(shape, dtype),
         failed=jnp.zeros(shape, bool),
         edge=jnp.zeros(shape, jnp.int32),
         cstate=jnp.zeros(shape, jnp.int32),
@@ -174,3 +206,22 @@ def grow_capacity(state: State, capacity: int) -> State:
     new = empty_history(n_blocks, capacity, state.verts.shape[1], state.fs.dtype)
     fields = {k: v.at[:old].set(getattr(state, k)) for k, v in new.items()}
     return dataclasses.replace(state, capacity=capacity, **fields)
+
+
+@_pytree(data=["force", "water_x", "water_y", "bolt_active"], meta=[])
+@dataclasses.dataclass(frozen=True)
+class Loads:
+    """What the host applies in one increment.
+
+    Attributes:
+      force: (N, 3) external load on each block (kN/m, kN/m, kN m/m about its
+        centroid): self-weight, tractions, support pressure, and the part of
+        the excavated blocks' forces not yet released.
+      water_x, water_y: (W,) water table polyline (m); unused without water.
+      bolt_active: (B,) bool, the bolt is installed.
+    """
+
+    force: jax.Array
+    water_x: jax.Array
+    water_y: jax.Array
+    bolt_active: jax.Array

@@ -14,10 +14,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from jaxdem.scene import (
+    InSitu,
     Joint,
     Scene,
     SceneError,
     SolverSettings,
+    Support,
     apply_overrides,
     load_scene,
     parse_scene,
@@ -230,6 +232,8 @@ def test_explicit_defaults_and_extensions():
         "gap": 0.0,
     }
     data["scene"]["default_joint"] = "set1"
+    # A joint set needs a domain to cut: one beside the explicit blocks.
+    data["domain"] = {"outline": [[10, 0], [20, 0], [20, 10], [10, 10]], "material": "rock"}
     scene = parse_scene(data)
     assert scene.solver.load_steps == 10 and isinstance(scene.solver.load_steps, int)
     assert scene.solver.dtype == "float32"
@@ -288,13 +292,20 @@ REFUSALS = [
     ("unknown scene field", setting("scene.author", "x"), "scene.author", "allowed"),
     ("unknown block field", setting("blocks.0.colour", "red"), "blocks.0.colour", "allowed"),
     ("unknown solver field", setting("solver", {"steps": 3}), "solver.steps", "allowed"),
-    ("in_situ", setting("in_situ", {"k0": 0.5}), "in_situ", "not supported in this version"),
-    ("domain", setting("domain", {}), "domain", "not supported"),
-    ("excavations", setting("excavations", []), "excavations", "not supported"),
-    ("bolts", setting("bolts", []), "bolts", "not supported"),
-    ("supports", setting("supports", []), "supports", "not supported"),
-    ("water", setting("water", {}), "water", "not supported"),
-    ("stages", setting("stages", []), "stages", "not supported"),
+    ("in_situ field", setting("in_situ", {"k": 0.5}), "in_situ.k", "allowed: mode, k0"),
+    ("domain empty", setting("domain", {}), "domain.outline", "required"),
+    ("excavations type", setting("excavations", {}), "excavations", "array of tables"),
+    ("bolts type", setting("bolts", 3), "bolts", "array of tables"),
+    ("supports type", setting("supports", {}), "supports", "array of tables"),
+    ("water empty", setting("water", {}), "water.table", "required"),
+    ("stages type", setting("stages", "a"), "stages", "array of tables"),
+    (
+        "set without domain",
+        lambda d: d["joints"]["j"].update({"dip_deg": 30.0, "spacing": 1.0}),
+        "joints.j",
+        "needs a [domain]",
+    ),
+    ("dip without spacing", setting("joints.j.dip_deg", 30.0), "joints.j.spacing", "required"),
     # types
     ("E string", setting("materials.rock.E", "2e7"), "materials.rock.E", "must be a number"),
     ("E bool", setting("materials.rock.E", True), "materials.rock.E", "must be a number"),
@@ -337,6 +348,7 @@ REFUSALS = [
     ("persistence 0", setting("joints.j.persistence", 0.0), "joints.j.persistence", "(0, 1]"),
     ("persistence >1", setting("joints.j.persistence", 1.5), "joints.j.persistence", "(0, 1]"),
     ("gap < 0", setting("joints.j.gap", -0.1), "joints.j.gap", ">= 0"),
+    ("gap no set", setting("joints.j.gap", 0.5), "joints.j.gap", "only for a joint set"),
     ("origin", setting("joints.j.origin", [0.0]), "joints.j.origin", "[x, y]"),
     # polygons
     ("2 points", setting("blocks.1.vertices", [[1, 1], [2, 1]]), "blocks.1.vertices", "3 points"),
@@ -543,6 +555,7 @@ def test_override_array_element_and_optional_field():
         ("scene.name", "--set scene.name: not a numeric parameter"),
         ("blocks.0.vertices", "--set blocks.0.vertices: not a numeric parameter"),
         ("in_situ.k0", "--set in_situ.k0: no such parameter"),
+        ("bolts.0.stiffness", "--set bolts.0.stiffness: no such parameter"),
     ],
 )
 def test_override_refused(path, message):
@@ -637,3 +650,300 @@ def test_ten_thousand_blocks_validate_quickly():
     data["blocks"][4321]["vertices"] = (square + [43.5, 21.0]).tolist()
     with pytest.raises(SceneError, match=r"^blocks\.4421: overlaps blocks\.4321 \(area 0\.5 m2\)"):
         parse_scene(data)
+
+
+# --------------------------------------------------------------------------- rock-mass sections
+
+
+def rock_scene_dict() -> dict:
+    """A generated rock mass with every section in use (mutate freely)."""
+    return {
+        "scene": {"name": "tunnel"},
+        "materials": {
+            "rock": {"E": 4e7, "nu": 0.25, "unit_weight": 26.0},
+            "shear": {"E": 4e6, "nu": 0.3, "unit_weight": 26.0},
+        },
+        "joints": {
+            "set1": {"kn": 1e6, "ks": 1e5, "friction_deg": 25.0, "dip_deg": 30.0, "spacing": 2.0},
+            "set2": {
+                "kn": 1e6,
+                "ks": 2.6e4,
+                "friction_deg": 20.0,
+                "dip_deg": 120.0,
+                "spacing": 2.0,
+                "persistence": 0.8,
+            },
+            "D": {"kn": 1e6, "ks": 1e5, "friction_deg": 20.0},
+        },
+        "domain": {"outline": [[0, 0], [40, 0], [40, 30], [0, 30]], "material": "rock"},
+        "zones": [
+            {"name": "sz", "vertices": [[0, 20], [40, 22], [40, 24], [0, 22]], "material": "shear"}
+        ],
+        "discontinuities": [{"from": [5, 0], "to": [15, 30], "joint": "D"}],
+        "excavations": [
+            {"name": "a", "shape": "circle", "center": [12, 10], "radius": 3.0},
+            {
+                "name": "b",
+                "shape": "horseshoe",
+                "center": [26, 6],
+                "width": 6,
+                "height": 7,
+                "stage": "bench",
+            },
+        ],
+        "in_situ": {"mode": "gravity", "k0": 0.5},
+        "bolts": [
+            {
+                "from": [15, 10],
+                "to": [18, 10],
+                "stiffness": 5e4,
+                "yield_force": 150,
+                "anchor_capacity": 200,
+                "stage": "bench",
+            }
+        ],
+        "supports": [{"excavation": "a", "pressure": 80.0}],
+        "water": {"table": [[0, 25], [40, 20]]},
+        "stages": [
+            {"name": "heading"},
+            {"name": "bench", "load_steps": 8, "water_table": [[0, 15], [40, 15]]},
+        ],
+        "boundaries": [{"side": "bottom", "condition": "fixed"}],
+        "monitors": [{"name": "crown", "point": [12, 13]}],
+    }
+
+
+def test_rock_scene_loads_with_defaults():
+    scene = parse_scene(rock_scene_dict())
+    assert scene.blocks == ()
+    assert scene.domain.material == "rock" and scene.domain.mesh_size is None
+    assert scene.domain.outline.shape == (4, 2) and not scene.domain.outline.flags.writeable
+    assert scene.joints["set1"].is_set and not scene.joints["D"].is_set
+    s2 = scene.joints["set2"]
+    assert s2.bridge_length == 2.0 and s2.trace_length == pytest.approx(8.0)
+    assert scene.joints["set1"].trace_length == math.inf
+    assert scene.zones[0].name == "sz" and scene.zones[0].material == "shear"
+    a, b = scene.excavations
+    assert (a.name, a.shape, a.stage, a.radius) == ("a", "circle", None, 3.0)
+    # h = min spacing / 2 = 1 m: ceil(2 pi 3 / 1) = 19 -> at least 24 segments.
+    assert len(a.vertices) == 24
+    np.testing.assert_allclose(np.hypot(*(a.vertices - [12, 10]).T), 3.0)
+    assert b.stage == "bench" and b.vertices[:, 1].max() == pytest.approx(13.0)
+    assert scene.in_situ == InSitu(mode="gravity", k0=0.5, surface_y=30.0)
+    bolt = scene.bolts[0]
+    assert (bolt.stiffness, bolt.spacing, bolt.stage) == (5e4, 1.0, "bench")
+    np.testing.assert_array_equal(bolt.end, [18.0, 10.0])
+    assert scene.supports == (Support(excavation="a", pressure=80.0, stage=None),)
+    assert scene.water.unit_weight == 9.81 and scene.water.table.shape == (2, 2)
+    assert [s.name for s in scene.stages] == ["heading", "bench"]
+    assert scene.stages[0].load_steps is None and scene.stages[1].load_steps == 8
+    assert scene.stages[1].water_table.shape == (2, 2)
+    assert scene.boundaries[0].end.tolist() == [40.0, 0.0]
+
+
+def test_uniform_in_situ_and_mesh_size_discretisation():
+    data = rock_scene_dict()
+    data["in_situ"] = {"mode": "uniform", "sigma_xx": 500.0, "sigma_yy": 1000.0}
+    data["domain"]["mesh_size"] = 0.25
+    scene = parse_scene(data)
+    assert scene.in_situ == InSitu(mode="uniform", sigma_xx=500.0, sigma_yy=1000.0)
+    assert len(scene.excavations[0].vertices) == 76  # ceil(2 pi 3 / 0.25)
+    data["excavations"][0]["radius"] = 9.0
+    data["excavations"][0]["center"] = [12, 12]
+    data["bolts"] = []
+    data["monitors"] = []
+    assert len(parse_scene(data).excavations[0].vertices) == 120  # clipped
+
+
+def test_l_shaped_domain_and_polygon_excavation_accepted():
+    data = rock_scene_dict()
+    data["domain"]["outline"] = [[0, 0], [40, 0], [40, 15], [20, 15], [20, 30], [0, 30]]
+    data["zones"][0]["vertices"] = [[0, 20], [20, 22], [20, 24], [0, 22]]
+    data["excavations"][1] = {
+        "name": "b",
+        "shape": "polygon",
+        "vertices": [[24, 2], [30, 2], [30, 8], [27, 5], [24, 8]],
+    }
+    del data["bolts"]
+    scene = parse_scene(data)
+    assert scene.excavations[1].vertices.shape == (5, 2)
+
+
+def test_rock_scene_overrides():
+    scene = parse_scene(rock_scene_dict())
+    new = scene.with_overrides(
+        {
+            "in_situ.k0": 1.5,
+            "bolts.0.stiffness": 1e5,
+            "supports.0.pressure": 0.0,
+            "water.unit_weight": 10.0,
+            "domain.mesh_size": 1.0,
+            "bolts.0.spacing": 2.0,
+            "excavations.0.radius": 2.5,
+            "joints.set1.spacing": 1.5,
+        }
+    )
+    assert new.in_situ.k0 == 1.5
+    assert new.bolts[0].stiffness == 1e5 and new.bolts[0].spacing == 2.0
+    assert new.supports[0].pressure == 0.0
+    assert new.water.unit_weight == 10.0
+    assert new.domain.mesh_size == 1.0
+    assert new.excavations[0].radius == 2.5
+    with pytest.raises(SceneError, match=r"^in_situ\.k0: must be >= 0"):
+        scene.with_overrides({"in_situ.k0": -1.0})
+
+
+def _load_rock_mutated(mutation: Callable[[dict], None]) -> Scene:
+    data = rock_scene_dict()
+    mutation(data)
+    return parse_scene(data)
+
+
+ROCK_REFUSALS = [
+    # domain
+    ("domain type", setting("domain", 3), "domain", "must be a table"),
+    ("domain field", setting("domain.size", 3), "domain.size", "allowed: outline"),
+    ("domain material", setting("domain.material", "x"), "domain.material", "unknown material"),
+    ("domain no material", deleting("domain.material"), "domain.material", "required"),
+    (
+        "domain clockwise",
+        setting("domain.outline", [[0, 0], [0, 30], [40, 30], [40, 0]]),
+        "domain.outline",
+        "clockwise",
+    ),
+    (
+        "domain bow-tie",
+        setting("domain.outline", [[0, 0], [40, 30], [40, 0], [0, 30]]),
+        "domain.outline",
+        "self-intersecting",
+    ),
+    ("mesh 0", setting("domain.mesh_size", 0.0), "domain.mesh_size", "> 0"),
+    ("mesh str", setting("domain.mesh_size", "1"), "domain.mesh_size", "number"),
+    ("mesh huge", setting("domain.mesh_size", 100.0), "domain.mesh_size", "larger than"),
+    (
+        "block on domain",
+        setting("blocks", [{"vertices": [[1, 1], [2, 1], [2, 2], [1, 2]], "material": "rock"}]),
+        "blocks.0",
+        "overlaps the domain",
+    ),
+    # joint sets
+    ("persistence gap 0", setting("joints.set2.gap", 0.0), "joints.set2.gap", "must be > 0"),
+    ("gap persistent", setting("joints.set1.gap", 1.0), "joints.set1.gap", "persistence < 1"),
+    ("spacing neg", setting("joints.set1.spacing", -2.0), "joints.set1.spacing", "> 0"),
+    # zones
+    ("zone material", setting("zones.0.material", "clay"), "zones.0.material", "clay"),
+    (
+        "zone outside",
+        setting("zones.0.vertices", [[50, 0], [60, 0], [60, 5]]),
+        "zones.0",
+        "does not overlap the domain",
+    ),
+    ("zone dup", lambda d: d["zones"].append(dict(d["zones"][0])), "zones.1.name", "duplicate"),
+    # excavations
+    ("exc no name", deleting("excavations.0.name"), "excavations.0.name", "required"),
+    ("exc dup", setting("excavations.1.name", "a"), "excavations.1.name", "duplicate name 'a'"),
+    ("exc shape", setting("excavations.0.shape", "oval"), "excavations.0.shape", "circle"),
+    ("exc no shape", deleting("excavations.0.shape"), "excavations.0.shape", "required"),
+    ("exc radius 0", setting("excavations.0.radius", 0.0), "excavations.0.radius", "> 0"),
+    ("exc radius str", setting("excavations.0.radius", "3"), "excavations.0.radius", "number"),
+    ("exc no radius", deleting("excavations.0.radius"), "excavations.0.radius", "required"),
+    ("exc no center", deleting("excavations.0.center"), "excavations.0.center", "required"),
+    ("exc width on circle", setting("excavations.0.width", 2.0), "excavations.0.width", "not used"),
+    ("horseshoe low", setting("excavations.1.height", 2.0), "excavations.1.height", "width / 2"),
+    (
+        "exc outside",
+        setting("excavations.0.center", [1.0, 10.0]),
+        "excavations.0",
+        "outside the domain",
+    ),
+    (
+        "exc overlap",
+        setting("excavations.1.center", [15, 8]),
+        "excavations.1",
+        "overlaps excavations.0",
+    ),
+    (
+        "exc polygon clockwise",
+        lambda d: d["excavations"].__setitem__(
+            1, {"name": "p", "shape": "polygon", "vertices": [[24, 2], [24, 8], [30, 8], [30, 2]]}
+        ),
+        "excavations.1.vertices",
+        "clockwise",
+    ),
+    ("exc stage", setting("excavations.1.stage", "top"), "excavations.1.stage", "unknown stage"),
+    # in situ
+    ("mode", setting("in_situ.mode", "tectonic"), "in_situ.mode", "gravity, uniform"),
+    ("k0 < 0", setting("in_situ.k0", -0.5), "in_situ.k0", ">= 0"),
+    ("k0 str", setting("in_situ.k0", "0.5"), "in_situ.k0", "number"),
+    ("sigma with gravity", setting("in_situ.sigma_xx", 1.0), "in_situ.sigma_xx", "uniform"),
+    (
+        "uniform needs sigma",
+        setting("in_situ", {"mode": "uniform", "sigma_xx": 1.0}),
+        "in_situ.sigma_yy",
+        "required",
+    ),
+    (
+        "k0 with uniform",
+        setting("in_situ", {"mode": "uniform", "sigma_xx": 1.0, "sigma_yy": 1.0, "k0": 1}),
+        "in_situ.k0",
+        "gravity",
+    ),
+    ("surface nan", setting("in_situ.surface_y", math.nan), "in_situ.surface_y", "finite"),
+    # bolts
+    ("bolt stiffness", setting("bolts.0.stiffness", 0.0), "bolts.0.stiffness", "> 0"),
+    ("bolt yield", setting("bolts.0.yield_force", -1.0), "bolts.0.yield_force", "> 0"),
+    ("bolt no anchor", deleting("bolts.0.anchor_capacity"), "bolts.0.anchor_capacity", "required"),
+    ("bolt spacing", setting("bolts.0.spacing", 0.0), "bolts.0.spacing", "> 0"),
+    ("bolt in tunnel", setting("bolts.0.from", [12, 10]), "bolts.0.from", "inside excavation 'a'"),
+    ("bolt outside", setting("bolts.0.to", [50, 10]), "bolts.0.to", "outside the rock"),
+    ("bolt zero", setting("bolts.0.to", [15, 10]), "bolts.0.to", "same point"),
+    ("bolt stage", setting("bolts.0.stage", "x"), "bolts.0.stage", "unknown stage 'x'"),
+    # supports
+    ("support exc", setting("supports.0.excavation", "c"), "supports.0.excavation", "unknown"),
+    ("support p < 0", setting("supports.0.pressure", -1.0), "supports.0.pressure", ">= 0"),
+    ("support no p", deleting("supports.0.pressure"), "supports.0.pressure", "required"),
+    ("support stage", setting("supports.0.stage", "z"), "supports.0.stage", "unknown stage"),
+    # water
+    (
+        "water not function",
+        setting("water.table", [[0, 25], [20, 22], [20, 21], [40, 20]]),
+        "water.table",
+        "not a function of x",
+    ),
+    ("water one point", setting("water.table", [[0, 25]]), "water.table", "at least 2 points"),
+    ("water gamma", setting("water.unit_weight", 0.0), "water.unit_weight", "> 0"),
+    ("water field", setting("water.level", 3.0), "water.level", "allowed"),
+    # stages
+    ("stage dup", setting("stages.1.name", "heading"), "stages.1.name", "duplicate"),
+    ("stage no name", deleting("stages.0.name"), "stages.0.name", "required"),
+    ("stage steps", setting("stages.1.load_steps", 0), "stages.1.load_steps", ">= 1"),
+    (
+        "stage table",
+        setting("stages.1.water_table", [[10, 1], [0, 2]]),
+        "stages.1.water_table",
+        "not a function of x",
+    ),
+    ("stage field", setting("stages.0.excavate", "a"), "stages.0.excavate", "allowed"),
+    # monitors
+    ("monitor in tunnel", setting("monitors.0.point", [12, 10]), "monitors.0.point", "excavation"),
+]
+
+
+@pytest.mark.parametrize(
+    ("mutation", "path", "words"),
+    [pytest.param(m, p, w, id=i) for i, m, p, w in ROCK_REFUSALS],
+)
+def test_rock_refusal(mutation, path, words):
+    with pytest.raises(SceneError) as info:
+        _load_rock_mutated(mutation)
+    message = str(info.value)
+    assert message.startswith(path + ":"), message
+    assert info.value.path == path
+    assert words in message, message
+
+
+def test_rock_scene_check_figure(tmp_path: Path):
+    from jaxdem.plots import plot_scene_check
+
+    path = plot_scene_check(parse_scene(rock_scene_dict()), tmp_path / "check.png")
+    assert path.stat().st_size > 10_000

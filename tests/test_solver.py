@@ -91,7 +91,7 @@ def test_falling_block_lands_and_rests_when_the_drop_is_short():
 
 def _capacity_one(state):
     """The state with a pair list of capacity 1, too small on purpose."""
-    keys = ("pairs", "fs", "fn", "failed", "edge", "cstate", "present")
+    keys = ("pairs", "fs", "fn", "fn0", "failed", "edge", "cstate", "present")
     return dataclasses.replace(state, capacity=1, **{k: getattr(state, k)[:1] for k in keys})
 
 
@@ -100,8 +100,9 @@ def test_capacity_overflow_grows_and_gives_the_same_answer():
     model, state, _ = model_mod.build(scene)
     ref_state = state
     small = _capacity_one(state)
-    _, s_small, info_small, _ = solver.run_increment(model, small, 1.0)
-    _, s_ref, info_ref, _ = solver.run_increment(model, ref_state, 1.0)
+    loads = solver.make_loads(model, model.f_ext)
+    _, s_small, info_small, _ = solver.run_increment(model, small, loads)
+    _, s_ref, info_ref, _ = solver.run_increment(model, ref_state, loads)
     assert s_small.capacity > 1
     assert int(info_small["status"]) == solver.Status.CONVERGED
     np.testing.assert_allclose(np.asarray(s_small.u), np.asarray(s_ref.u), rtol=1e-10, atol=1e-15)
@@ -111,7 +112,7 @@ def test_overflow_is_flagged_not_truncated():
     scene = parse_scene(stack(4))
     model, state, _ = model_mod.build(scene)
     tiny = _capacity_one(state)
-    _, info = solver.increment(model, tiny, jnp.asarray(1.0))
+    _, info = solver.increment(model, tiny, solver.make_loads(model, model.f_ext))
     assert int(info["status"]) == solver.Status.CAPACITY_OVERFLOW
     assert int(info["pairs_needed"]) >= 4
 
@@ -150,9 +151,10 @@ def test_increment_is_jitted_once_per_shape():
 def test_dense_and_iterative_solvers_agree():
     scene = parse_scene(stack(3))
     model, state, _ = model_mod.build(scene)
-    _, s_dense, _, _ = solver.run_increment(model, state, 1.0)
+    loads = solver.make_loads(model, model.f_ext)
+    _, s_dense, _, _ = solver.run_increment(model, state, loads)
     model_cg = dataclasses.replace(model, dense=False)
-    _, s_cg, info, _ = solver.run_increment(model_cg, state, 1.0)
+    _, s_cg, info, _ = solver.run_increment(model_cg, state, loads)
     assert int(info["status"]) == solver.Status.CONVERGED
     np.testing.assert_allclose(np.asarray(s_cg.u), np.asarray(s_dense.u), rtol=1e-7, atol=1e-14)
 
@@ -161,8 +163,9 @@ def test_increment_vmaps_over_load_factors():
     scene = parse_scene(stack(2))
     model, state, _ = model_mod.build(scene)
     lams = jnp.array([0.25, 0.5, 1.0])
-    states, info = jax.vmap(solver.increment, in_axes=(None, None, 0))(model, state, lams)
+    batch = jax.vmap(lambda lam: solver.make_loads(model, lam * model.f_ext))(lams)
+    states, info = jax.vmap(solver.increment, in_axes=(None, None, 0))(model, state, batch)
     for k, lam in enumerate(lams):
-        s1, _ = solver.increment(model, state, lam)
+        s1, _ = solver.increment(model, state, solver.make_loads(model, lam * model.f_ext))
         np.testing.assert_allclose(np.asarray(states.u[k]), np.asarray(s1.u), rtol=1e-9, atol=1e-15)
     assert (np.asarray(info["status"]) == solver.Status.CONVERGED).all()
