@@ -235,7 +235,8 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
                for m in scene.materials.values()]
             + [(default.kn, default.ks, default.cohesion, default.tensile_strength,
                 default.friction_deg, False) if default else (1.0, 1.0, 0.0, 0.0, 0.0, False)])
-    joint_kn, joint_ks, joint_c, joint_t, phi, joint_intact = (np.array(c) for c in zip(*rows, strict=True))
+    columns = (np.array(c) for c in zip(*rows, strict=True))
+    joint_kn, joint_ks, joint_c, joint_t, phi, joint_intact = columns
     joint_tanphi = np.tan(np.radians(phi))
     edge_joint = _edge_joints(all_polys, V, scene, joint_index, tol_geo * 1e3)
     for i, pc in enumerate(pieces):
