@@ -17,7 +17,9 @@ anti-parallel to that face within ``cos_parallel``: its effective length is
 half the overlap of the two faces, so the two end points of a face-to-face
 contact share Le = |p1 - p2| (paper eq. 8). Otherwise it is a corner-to-edge
 contact whose effective length is ``corner_share`` (default 0.1) times the
-shorter of the two faces meeting at the corner: a corner bears on a short
+shorter of the two faces meeting at the corner, provided the corner lies
+inside the face's span (a corner at the end of a face, where faces meet end
+to end at a node, bears on nothing): a corner bears on a short
 length of the face, and the choice only sets the corner spring's stiffness,
 never the strength check, which is per point. Where a vertex of b sits at the
 contact point of a vertex of a (within that point's overlap), only a's slot is
@@ -189,7 +191,7 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ey, cy, not_dup):
     # corners coincide (a regular grid) shift by joint shear, and the contact
     # point must not hop to the other block's vertex and lose its history.
     in_span = (s_e >= -model.span_tol) & (s_e <= L_e + model.span_tol)
-    active = vmx & not_dup & (dmax <= model.margin) & in_span
+    near = vmx & not_dup & (dmax <= model.margin) & in_span
     po = take(par_out)
     pi = take(par_in)
     n = jnp.take_along_axis(ny, e[..., None], axis=1)
@@ -206,7 +208,13 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ey, cy, not_dup):
     overlap = hi - lo
     corner = model.corner_share * jnp.minimum(lx, l_in)
     parallel = po | pi
-    share = jnp.where(parallel, 0.5 * overlap, corner)
+    # A corner bears on a face only inside its span: at the end of a face
+    # (faces meeting end to end at a mesh node) it touches without bearing.
+    inside = (s_e > model.span_tol) & (s_e < L_e - model.span_tol)
+    share = jnp.where(parallel, 0.5 * overlap, jnp.where(inside, corner, 0.0))
+    # Faces that meet end to end (a diagonal neighbour on a grid) share no
+    # length: no spring.
+    active = near & (share > 0)
     own_edge = jnp.where(po, k[None, :], jnp.where(pi, prev, -1))
     h_x = jnp.maximum(jnp.sum((cx[:, None, :] - q) * n, axis=-1), 0.0)
     h_y = jnp.maximum(jnp.sum((q - cy[:, None, :]) * n, axis=-1), 0.0)

@@ -181,13 +181,14 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
     touch_tol = L * (1e-6 if dtype == np.float64 else 1e-4)
 
     # Rigid walls along fixed and roller boundaries.
-    walls, wall_kind = [], []
+    walls, wall_kind, wall_segments = [], [], []
     inside = 0.5 * (lo + hi)
     for bd in scene.boundaries:
         if bd.condition in ("fixed", "roller"):
             p0, p1 = np.asarray(bd.start, float), np.asarray(bd.end, float)
             thick = max(0.1 * np.linalg.norm(p1 - p0), 2 * L)
             walls.append(_wall_polygon(p0, p1, inside, thick))
+            wall_segments.append(np.array([p0, p1]))
             wall_kind.append(WALL_FIXED if bd.condition == "fixed" else WALL_ROLLER)
     all_polys = polys + walls
     N = len(all_polys)
@@ -316,7 +317,7 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
         supports.append(dict(stage=sp.stage, excavation=sp.excavation, force=load))
     layout = Layout(
         n_rock=n_rock, polygons=polys, centroids=cents,
-        walls=[w[:2].copy() for w in walls],
+        walls=wall_segments,
         monitors=_locate_monitors(scene, polys, cents, tol_geo * 1e3, excavation),
         length=L, dtype=dtype, load_steps=s.load_steps,
         weight=weight, traction=traction, excavation=excavation, supports=supports,
