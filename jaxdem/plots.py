@@ -1,4 +1,5 @@
-"""Figures of a solved model (``blocks.png``, ``monitors.png``) and of a scene (``check.png``).
+"""Figures of a solved model (``blocks.png``, ``monitors.png``, ``stresses.png``,
+``sections.png``) and of a scene (``check.png``).
 
 Host code only: NumPy and matplotlib's object interface with the Agg renderer
 (no display, and pyplot's global state is left alone, so importing this module
@@ -13,7 +14,7 @@ Example::
     from jaxdem import load_scene, solve
     from jaxdem.plots import write_figures
     result = solve(load_scene("tunnel.toml"))
-    write_figures(result, "out/tunnel")   # [out/tunnel/blocks.png, out/tunnel/monitors.png]
+    write_figures(result, "out/tunnel")   # [out/tunnel/blocks.png, out/tunnel/monitors.png, ...]
 """
 
 from __future__ import annotations
@@ -43,6 +44,18 @@ _STATE_STYLE = {
     OPEN: ("tab:red", "open"),
 }
 _MONITOR_COLOUR = "tab:blue"
+_COMPRESSION = "tab:blue"
+_TENSION = "tab:red"
+# Above _MAX_CROSSES blocks, one principal-stress cross per cell of a grid.
+_MAX_CROSSES = 2500
+_CROSS_GRID = 50
+# Bolt states: colour and line style; forces written on at most _MAX_BOLT_LABELS bolts.
+_BOLT_STYLE = {
+    "elastic": ("saddlebrown", "-"),
+    "yielded": ("darkviolet", "-"),
+    "pulled out": ("0.45", "--"),
+}
+_MAX_BOLT_LABELS = 60
 _ARROW_COLOUR = "tab:purple"
 # Above _MAX_ARROWS blocks, draw only the largest displacement in each cell of an
 # _ARROW_GRID x _ARROW_GRID grid over the model: thousands of arrows read as noise.
@@ -58,11 +71,14 @@ def plot_blocks(result: Result, path: str | Path, *, magnification: float | None
     """Draw the block model after the solve.
 
     Initial outlines in light grey, final (deformed, true scale) outlines in
-    dark grey, fixed blocks shaded and hatched, walls as thick black lines,
-    contact points coloured by state (stuck green, slipping orange, open red,
-    with counts in the legend), centroid displacement vectors as arrows,
-    blocks still moving at a mechanism outlined red, monitor points and
-    sections labelled.
+    dark grey, fixed blocks shaded and hatched, excavated blocks left out
+    (only the opening drawn, as a light dashed outline of their initial
+    vertices), walls as thick black lines, contact points coloured by state
+    (stuck green, slipping orange, open red, with counts in the legend),
+    centroid displacement vectors as arrows, bolts as lines between their
+    current anchors coloured by state (elastic, yielded, pulled out) and
+    labelled with their force in kN, blocks still moving at a mechanism
+    outlined red, monitor points and sections labelled.
 
     Args:
       result: a :class:`~jaxdem.results.Result` with ``geometry`` filled in.
@@ -80,49 +96,36 @@ def plot_blocks(result: Result, path: str | Path, *, magnification: float | None
     initial = _polygons(geometry.get("initial_vertices", []))
     final = _polygons(geometry.get("final_vertices", [])) or initial
     n_blocks = max(len(initial), len(final))
-    fixed = np.zeros(n_blocks, dtype=bool)
-    fixed_in = np.asarray(geometry.get("fixed", [b.get("fixed", False) for b in result.blocks]))
-    fixed[: min(n_blocks, fixed_in.size)] = fixed_in.astype(bool)[:n_blocks]
+    fixed = _block_mask(
+        geometry.get("fixed", [b.get("fixed", False) for b in result.blocks]), n_blocks
+    )
+    excavated = _excavated(result, n_blocks)
 
     fig, ax = _figure((9, 7.5))
     lw = _line_width(n_blocks)
     handles: list[Any] = []
 
-    if initial:
+    kept_initial = [p for p, e in zip(initial, excavated, strict=False) if not e]
+    if kept_initial:
         ax.add_collection(
             PolyCollection(
-                initial, closed=True, facecolors="none", edgecolors="0.78", linewidths=lw, zorder=1
+                kept_initial,
+                closed=True,
+                facecolors="none",
+                edgecolors="0.78",
+                linewidths=lw,
+                zorder=1,
             )
         )
         handles.append(Line2D([], [], color="0.78", lw=1.0, label="initial"))
-    if final:
-        ax.add_collection(
-            PolyCollection(
-                final, closed=True, facecolors="none", edgecolors="0.15", linewidths=lw, zorder=2
-            )
-        )
-        handles.append(Line2D([], [], color="0.15", lw=1.0, label="final"))
-        fixed_polys = [p for p, f in zip(final, fixed, strict=False) if f]
-        if fixed_polys:
-            ax.add_collection(
-                PolyCollection(
-                    fixed_polys,
-                    closed=True,
-                    facecolors="0.85",
-                    edgecolors="0.15",
-                    hatch="///",
-                    linewidths=lw,
-                    zorder=0,
-                )
-            )
-            handles.append(Patch(facecolor="0.85", edgecolor="0.15", hatch="///", label="fixed"))
+    handles += _draw_final_blocks(ax, initial, final, fixed, excavated, lw, "0.15")
 
     walls = [np.asarray(w, dtype=float).reshape(2, 2) for w in geometry.get("walls", [])]
     if walls:
         ax.add_collection(LineCollection(walls, colors="k", linewidths=3.0, zorder=3))
         handles.append(Line2D([], [], color="k", lw=3.0, label="wall"))
 
-    moving = [i for i in result.moving_blocks if 0 <= int(i) < len(final)]
+    moving = [i for i in result.moving_blocks if 0 <= int(i) < len(final) and not excavated[int(i)]]
     if moving:
         ax.add_collection(
             PolyCollection(
@@ -138,15 +141,19 @@ def plot_blocks(result: Result, path: str | Path, *, magnification: float | None
 
     handles += _draw_contacts(ax, geometry.get("contacts") or {}, n_blocks)
 
-    size = _model_size(initial + final + walls)
-    arrow_handle = _draw_displacements(ax, result, initial, size, magnification)
+    shown = initial + [p for p, e in zip(final, excavated, strict=False) if not e] + walls
+    bolts = _bolt_segments(geometry)
+    size = _model_size(shown + bolts)
+    arrow_handle = _draw_displacements(ax, result, initial, size, magnification, excavated)
     if arrow_handle is not None:
         handles.append(arrow_handle)
+
+    handles += _draw_bolts(ax, result, bolts, size)
 
     monitor_handles = _draw_monitors(ax, geometry.get("monitors") or {}, size)
     handles += monitor_handles
 
-    _finish_axes(ax, initial + final + walls)
+    _finish_axes(ax, shown + bolts)
     ax.set_title(f"{result.scene}: {_status_text(result)}")
     ax.legend(
         handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False
@@ -228,17 +235,213 @@ def plot_monitor_history(result: Result, path: str | Path) -> Path | None:
     return _save(fig, path)
 
 
-def write_figures(result: Result, out_dir: str | Path) -> list[Path]:
-    """Write ``blocks.png`` and, when there are monitors, ``monitors.png`` to ``out_dir``.
+def plot_principal_stresses(result: Result, path: str | Path) -> Path | None:
+    """Principal-stress crosses on the final blocks; ``None`` where there are no stresses.
+
+    The final outlines are drawn light (excavated blocks left out, the
+    opening as a dashed outline, fixed blocks hatched); at each block
+    centroid two perpendicular bars lie along the principal directions, each
+    as long as its principal stress is large (one scale for the whole figure,
+    stated in the legend as "1 m = 2000 kPa"), blue in compression, red in
+    tension. Above ``_MAX_CROSSES`` blocks, one cross per cell of a
+    ``_CROSS_GRID`` x ``_CROSS_GRID`` grid is drawn (the block nearest the
+    cell centre). The scale draws the 95th percentile of |sigma| at about
+    0.8 block spacings; the few longer bars (stress concentrations) are
+    clipped at 1.3 spacings, which the legend then says.
+
+    Args:
+      result: a :class:`~jaxdem.results.Result` whose ``geometry`` holds
+        ``stress`` (n, 3) sxx, syy, sxy (kPa, compression positive) and
+        ``centroids`` (n, 2) (else the blocks' ``stress`` and centroids).
+      path: PNG file to write.
 
     Returns:
-      The paths written, ``blocks.png`` first.
+      ``path``, or ``None`` when no block carries a stress (nothing is written).
+    """
+    geometry = result.geometry or {}
+    initial = _polygons(geometry.get("initial_vertices", []))
+    final = _polygons(geometry.get("final_vertices", [])) or initial
+    n_blocks = max(len(initial), len(final), len(result.blocks))
+    stress = _block_array(geometry.get("stress"), [b.get("stress") for b in result.blocks], 3)
+    centroids = _block_array(
+        geometry.get("centroids"),
+        [_centroid(p) for p in final] or [b.get("centroid") for b in result.blocks],
+        2,
+    )
+    n = min(len(stress), len(centroids))
+    if n == 0:
+        return None
+    stress, centroids = stress[:n], centroids[:n]
+    excavated = _excavated(result, max(n_blocks, n))
+    fixed = _block_mask(
+        geometry.get("fixed", [b.get("fixed", False) for b in result.blocks]), max(n_blocks, n)
+    )
+    sigma, directions = principal_stresses(stress)
+    visible = ~excavated[:n] & np.isfinite(sigma).all(axis=1) & np.isfinite(centroids).all(axis=1)
+    magnitude = np.abs(sigma).max(axis=1)
+    if not (visible & (magnitude > 0)).any():
+        return None
+
+    fig, ax = _figure((9, 7.5))
+    lw = _line_width(len(final))
+    outline = "0.55" if len(final) <= 2000 else "0.7"
+    handles = _draw_final_blocks(ax, initial, final, fixed, excavated, lw, outline)
+
+    # Thin to one cross per grid cell, then size the bars by the block spacing.
+    shown_polys = [p for p, e in zip(final, excavated, strict=False) if not e]
+    sel = visible.copy()
+    thinned = sel.sum() > _MAX_CROSSES
+    if thinned:
+        sel &= _nearest_centre_per_cell(centroids, sel, _CROSS_GRID)
+        pts = centroids[visible]
+        spacing = float((pts.max(axis=0) - pts.min(axis=0)).max()) / _CROSS_GRID
+    else:
+        areas = np.array([abs(_area(p)) for p in shown_polys])
+        areas = areas[areas > 0]
+        spacing = float(np.sqrt(np.median(areas))) if len(areas) else 0.0
+    if not spacing > 0:
+        spacing = 0.05 * _model_size(shown_polys or [centroids[visible]])
+    # Scale on the 95th percentile (so a few stress concentrations at corners
+    # do not shrink every other cross to a dot); clip the few longer bars.
+    p95 = float(np.percentile(magnitude[sel], 95)) or float(magnitude[sel].max())
+    kpa_per_m = nice_ceil(p95 / (0.8 * spacing))
+    ref = 1.3 * spacing * kpa_per_m
+    clipped = float(magnitude[sel].max()) > ref
+    segments, colours = stress_crosses(
+        centroids[sel], sigma[sel], directions[sel], kpa_per_m, clip=ref if clipped else None
+    )
+    ax.add_collection(
+        LineCollection(
+            segments, colors=colours, linewidths=0.7 if thinned else 1.2, capstyle="butt", zorder=5
+        )
+    )
+    s_sel = sigma[sel]
+    label = f"compression (max {s_sel.max():.4g} kPa)"
+    handles.append(Line2D([], [], color=_COMPRESSION, lw=1.5, label=label))
+    if (s_sel < 0).any():
+        label = f"tension (max {-s_sel.min():.4g} kPa)"
+        handles.append(Line2D([], [], color=_TENSION, lw=1.5, label=label))
+    note = f"scale: 1 m = {_format_number(kpa_per_m)} kPa"
+    if clipped:
+        note += f"\nbars clipped at {ref:.4g} kPa"
+    if thinned:
+        note += f"\n{int(sel.sum())} of {int(visible.sum())} blocks (grid)"
+    handles.append(Line2D([], [], ls="", label=note))
+
+    _finish_axes(ax, initial + shown_polys + [centroids[visible]])
+    ax.set_title(f"{result.scene}: principal stresses (compression positive)")
+    ax.legend(
+        handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False
+    )
+    return _save(fig, path)
+
+
+def plot_sections(result: Result, path: str | Path) -> Path | None:
+    """Monitors at the end of each stage, as bars; ``None`` where there are none.
+
+    One group of bars per monitor, one bar per stage (coloured by stage and
+    labelled with its value), as in the staged-excavation figures of tunnel
+    papers: section convergence (mm, positive when the ends approach) on the
+    left, point monitors' displacement magnitude |u| (mm) on the right.
+
+    Args:
+      result: a :class:`~jaxdem.results.Result` whose ``stages`` each hold
+        ``name`` and ``monitors`` (monitor name -> value after each increment, m).
+      path: PNG file to write.
+
+    Returns:
+      ``path``, or ``None`` when no stage recorded a monitor (nothing is written).
+    """
+    stages = list(result.stages or [])
+    names: list[str] = []
+    for stage in stages:
+        for name, values in (stage.get("monitors") or {}).items():
+            if name not in names and len(np.atleast_1d(values)):
+                names.append(name)
+    if not names:
+        return None
+    stage_names = [str(s.get("name", f"stage {k + 1}")) for k, s in enumerate(stages)]
+    # values[i, j]: monitor i at the end of stage j (mm), NaN where not recorded.
+    values = np.full((len(names), len(stages)), np.nan)
+    for j, stage in enumerate(stages):
+        monitors = stage.get("monitors") or {}
+        for i, name in enumerate(names):
+            series = np.atleast_1d(np.asarray(monitors.get(name, []), dtype=float))
+            if len(series):
+                values[i, j] = 1e3 * series[-1]
+    groups = [
+        (kind, title, [i for i, name in enumerate(names) if _monitor_kind(result, name) == kind])
+        for kind, title in (
+            ("section", "section convergence (mm)"),
+            ("point", "point displacement |u| (mm)"),
+        )
+    ]
+    groups = [g for g in groups if g[2]]
+    widths = [max(len(g[2]), 1) * max(len(stages), 1) * 0.45 + 1.5 for g in groups]
+    fig = Figure(figsize=(min(max(sum(widths) + 1.5, 6.0), 18.0), 4.8), layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(1, len(groups), squeeze=False, width_ratios=widths)[0]
+    n_stages = len(stages)
+    bar_width = 0.8 / n_stages
+    for ax, (_, title, rows) in zip(axes, groups, strict=True):
+        x = np.arange(len(rows))
+        for j in range(n_stages):
+            heights = values[rows, j]
+            pos = x - 0.4 + (j + 0.5) * bar_width
+            ok = np.isfinite(heights)
+            bars = ax.bar(
+                pos[ok],
+                heights[ok],
+                width=bar_width * 0.92,
+                color=f"C{j % 10}",
+                edgecolor="0.2",
+                linewidth=0.5,
+                label=stage_names[j],
+                zorder=3,
+            )
+            if len(rows) * n_stages <= 40:
+                tiny = 1e-3 * np.nanmax(np.abs(values[rows]), initial=0.0)
+                labels = [f"{v:.3g}" if abs(v) > tiny else "0" for v in heights[ok]]
+                ax.bar_label(bars, labels=labels, fontsize=7, padding=2)
+        ax.axhline(0.0, color="0.3", lw=0.8, zorder=2)
+        ax.set_xticks(x, [names[i] for i in rows], rotation=30 if len(rows) > 6 else 0)
+        ax.set_ylabel(title)
+        ax.grid(True, axis="y", lw=0.4, alpha=0.5, zorder=0)
+        ax.margins(y=0.15)
+        ax.set_title(title.split(" (")[0], fontsize=10)
+    axes[-1].legend(
+        title="end of stage",
+        fontsize=8,
+        title_fontsize=8,
+        loc="upper left",
+        bbox_to_anchor=(1.01, 1.0),
+        frameon=False,
+    )
+    fig.suptitle(f"{result.scene}: monitors at the end of each stage")
+    return _save(fig, path)
+
+
+def write_figures(result: Result, out_dir: str | Path) -> list[Path]:
+    """Write the figures of a solve to ``out_dir``.
+
+    ``blocks.png`` always; ``monitors.png`` (monitor histories) and
+    ``sections.png`` (monitors at the end of each stage) when there are
+    monitors; ``stresses.png`` (principal-stress crosses) when a block
+    carries a stress.
+
+    Returns:
+      The paths written, in the order blocks, monitors, stresses, sections.
     """
     out_dir = Path(out_dir)
     paths = [plot_blocks(result, out_dir / "blocks.png")]
-    history_path = plot_monitor_history(result, out_dir / "monitors.png")
-    if history_path is not None:
-        paths.append(history_path)
+    for plot, name in (
+        (plot_monitor_history, "monitors.png"),
+        (plot_principal_stresses, "stresses.png"),
+        (plot_sections, "sections.png"),
+    ):
+        written = plot(result, out_dir / name)
+        if written is not None:
+            paths.append(written)
     return paths
 
 
@@ -597,13 +800,23 @@ def _draw_contacts(ax: Any, contacts: dict[str, Any], n_blocks: int) -> list[Any
 
 
 def _draw_displacements(
-    ax: Any, result: Result, initial: list[np.ndarray], size: float, magnification: float | None
+    ax: Any,
+    result: Result,
+    initial: list[np.ndarray],
+    size: float,
+    magnification: float | None,
+    excavated: np.ndarray | None = None,
 ) -> Any:
-    """Centroid displacement arrows from the initial centroids; returns a legend handle."""
+    """Centroid displacement arrows from the initial centroids; returns a legend handle.
+
+    Excavated blocks (``excavated[k]`` or ``"excavated"`` in the block's dict) get none.
+    """
     if not result.blocks:
         return None
     centroids, u = [], []
     for k, b in enumerate(result.blocks):
+        if b.get("excavated") or (excavated is not None and k < len(excavated) and excavated[k]):
+            continue
         c = b.get("centroid")
         if c is None and k < len(initial):
             c = _centroid(initial[k])
@@ -725,6 +938,233 @@ def _draw_monitors(ax: Any, monitors: dict[str, Any], size: float) -> list[Any]:
         )
     if any_section:
         handles.append(Line2D([], [], color=_MONITOR_COLOUR, ls="--", label="monitor section"))
+    return handles
+
+
+def principal_stresses(stress: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Principal values and directions of 2D stresses [sxx, syy, sxy].
+
+    Args:
+      stress: (n, 3) or (3,) array: sxx, syy, sxy (any consistent units).
+
+    Returns:
+      ``(sigma, directions)``: ``sigma`` (n, 2) principal values, major
+      (largest, i.e. most compressive with compression positive) first, and
+      ``directions`` (n, 2, 2) with ``directions[i, k]`` the unit vector of
+      ``sigma[i, k]`` (its sign is arbitrary). Eigen-decomposition of the
+      symmetric tensor ``[[sxx, sxy], [sxy, syy]]`` by :func:`numpy.linalg.eigh`.
+    """
+    s = np.asarray(stress, dtype=float).reshape(-1, 3)
+    tensor = np.empty((len(s), 2, 2))
+    tensor[:, 0, 0], tensor[:, 1, 1] = s[:, 0], s[:, 1]
+    tensor[:, 0, 1] = tensor[:, 1, 0] = s[:, 2]
+    finite = np.isfinite(tensor).all(axis=(1, 2))
+    values = np.full((len(s), 2), np.nan)
+    vectors = np.full((len(s), 2, 2), np.nan)
+    if finite.any():
+        w, v = np.linalg.eigh(tensor[finite])  # ascending; eigenvectors are columns
+        values[finite] = w[:, ::-1]
+        vectors[finite] = np.transpose(v[:, :, ::-1], (0, 2, 1))
+    return values, vectors
+
+
+def stress_crosses(
+    centres: np.ndarray,
+    sigma: np.ndarray,
+    directions: np.ndarray,
+    kpa_per_m: float,
+    clip: float | None = None,
+) -> tuple[np.ndarray, list[str]]:
+    """Bars of principal-stress crosses: (2n, 2, 2) segments and their colours.
+
+    Each bar is centred on its block's centroid, lies along its principal
+    direction and is ``|sigma| / kpa_per_m`` long (|sigma| clipped at
+    ``clip`` when given); blue for compression (sigma > 0), red for tension.
+    """
+    mag = np.abs(sigma)
+    if clip is not None:
+        mag = np.minimum(mag, clip)
+    half = 0.5 * mag / kpa_per_m  # (n, 2)
+    arm = directions * half[:, :, None]  # (n, 2, 2)
+    c = centres[:, None, :]
+    segments = np.stack([c - arm, c + arm], axis=2).reshape(-1, 2, 2)
+    colours = [_COMPRESSION if v > 0 else _TENSION for v in sigma.reshape(-1)]
+    return segments, colours
+
+
+def nice_ceil(x: float) -> float:
+    """The smallest round number (1, 1.5, 2, 2.5, 3, 4, 5, 6 or 8 times a power of ten)
+    that is at least ``x``; 1 when ``x`` is not positive."""
+    if not (x > 0 and np.isfinite(x)):
+        return 1.0
+    exponent = math.floor(math.log10(x))
+    for step in (1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0):
+        value = step * 10.0**exponent
+        if value >= x * (1 - 1e-12):
+            return float(value)
+    return float(10.0 ** (exponent + 1))
+
+
+def _format_number(x: float) -> str:
+    return f"{x:.0f}" if float(x).is_integer() else f"{x:g}"
+
+
+def _block_mask(values: Any, n: int) -> np.ndarray:
+    """A bool per block, padded with False (or cut) to ``n``."""
+    out = np.zeros(n, dtype=bool)
+    given = np.asarray(values if values is not None else [], dtype=bool).reshape(-1)
+    m = min(n, given.size)
+    out[:m] = given[:m]
+    return out
+
+
+def _excavated(result: Result, n: int) -> np.ndarray:
+    """Excavated blocks: ``geometry["excavated"]``, else the blocks' ``"excavated"`` flags."""
+    given = (result.geometry or {}).get("excavated")
+    if given is None:
+        given = [bool(b.get("excavated", False)) for b in result.blocks]
+    return _block_mask(given, n)
+
+
+def _block_array(values: Any, fallback: Sequence[Any], width: int) -> np.ndarray:
+    """(n, width) float array from ``values``, else from the per-block ``fallback``."""
+    if values is not None and np.size(values):
+        return np.asarray(values, dtype=float).reshape(-1, width)
+    if fallback and all(v is not None for v in fallback):
+        return np.asarray(fallback, dtype=float).reshape(-1, width)
+    return np.zeros((0, width))
+
+
+def _area(poly: np.ndarray) -> float:
+    x, y = poly[:, 0], poly[:, 1]
+    return 0.5 * float((x * np.roll(y, -1) - np.roll(x, -1) * y).sum())
+
+
+def _nearest_centre_per_cell(points: np.ndarray, valid: np.ndarray, n_cells: int) -> np.ndarray:
+    """Mask of the valid point nearest its cell's centre, per cell of an n x n grid."""
+    keep = np.zeros(len(points), dtype=bool)
+    idx = np.nonzero(valid)[0]
+    if not len(idx):
+        return keep
+    pts = points[idx]
+    lo = pts.min(axis=0)
+    span = np.maximum(pts.max(axis=0) - lo, 1e-12)
+    frac = n_cells * (pts - lo) / span
+    ij = np.minimum(frac.astype(int), n_cells - 1)
+    dist = np.linalg.norm(frac - (ij + 0.5), axis=1)
+    keep[idx] = _largest_per_cell(pts, -dist, n_cells)
+    return keep
+
+
+def _draw_final_blocks(
+    ax: Any,
+    initial: list[np.ndarray],
+    final: list[np.ndarray],
+    fixed: np.ndarray,
+    excavated: np.ndarray,
+    lw: float,
+    colour: str,
+) -> list[Any]:
+    """Final outlines of the blocks left, fixed ones hatched, the opening dashed."""
+    handles: list[Any] = []
+    kept = [(p, bool(f)) for p, f, e in zip(final, fixed, excavated, strict=False) if not e]
+    if kept:
+        ax.add_collection(
+            PolyCollection(
+                [p for p, _ in kept],
+                closed=True,
+                facecolors="none",
+                edgecolors=colour,
+                linewidths=lw,
+                zorder=2,
+            )
+        )
+        handles.append(Line2D([], [], color=colour, lw=1.0, label="final"))
+        fixed_polys = [p for p, f in kept if f]
+        if fixed_polys:
+            ax.add_collection(
+                PolyCollection(
+                    fixed_polys,
+                    closed=True,
+                    facecolors="0.85",
+                    edgecolors=colour,
+                    hatch="///",
+                    linewidths=lw,
+                    zorder=0,
+                )
+            )
+            handles.append(Patch(facecolor="0.85", edgecolor=colour, hatch="///", label="fixed"))
+    opening = [p for p, e in zip(initial, excavated, strict=False) if e]
+    if opening:
+        ax.add_collection(
+            PolyCollection(
+                opening,
+                closed=True,
+                facecolors="none",
+                edgecolors="0.65",
+                linestyles="--",
+                linewidths=max(0.5 * lw, 0.3),
+                zorder=1,
+            )
+        )
+        handles.append(
+            Line2D([], [], color="0.65", lw=1.0, ls="--", label=f"excavated ({len(opening)})")
+        )
+    return handles
+
+
+def _bolt_segments(geometry: dict[str, Any]) -> list[np.ndarray]:
+    return [np.asarray(b, dtype=float).reshape(2, 2) for b in geometry.get("bolts") or []]
+
+
+def _draw_bolts(ax: Any, result: Result, segments: list[np.ndarray], size: float) -> list[Any]:
+    """Bolts as lines between their anchors, by state, labelled with force (kN)."""
+    if not segments:
+        return []
+    info = list(result.bolts or [])
+    states = [
+        str((info[k] if k < len(info) else {}).get("state", "elastic"))
+        for k in range(len(segments))
+    ]
+    handles = []
+    for state in dict.fromkeys(list(_BOLT_STYLE) + states):
+        sel = [k for k, s in enumerate(states) if s == state]
+        if not sel:
+            continue
+        colour, ls = _BOLT_STYLE.get(state, ("0.3", "-"))
+        ax.add_collection(
+            LineCollection(
+                [segments[k] for k in sel],
+                colors=colour,
+                linestyles=ls,
+                linewidths=2.5 if len(segments) <= 200 else 1.2,
+                zorder=6.5,
+            )
+        )
+        handles.append(
+            Line2D([], [], color=colour, ls=ls, lw=2.5, label=f"bolt {state} ({len(sel)})")
+        )
+    forces = np.array(
+        [
+            float((info[k] if k < len(info) else {}).get("force", np.nan))
+            for k in range(len(segments))
+        ]
+    )
+    finite = np.nonzero(np.isfinite(forces))[0]
+    if len(finite) > _MAX_BOLT_LABELS:
+        finite = finite[np.argsort(-np.abs(forces[finite]))[:_MAX_BOLT_LABELS]]
+        handles.append(Line2D([], [], ls="", label=f"forces of the {_MAX_BOLT_LABELS} largest"))
+    for k in finite:
+        mid = segments[k].mean(axis=0)
+        ax.annotate(
+            f"{forces[k]:.3g} kN",
+            xy=mid,
+            xytext=(3, 3),
+            textcoords="offset points",
+            fontsize=7,
+            color=_BOLT_STYLE.get(states[k], ("0.3", "-"))[0],
+            zorder=9,
+        )
     return handles
 
 

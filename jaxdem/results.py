@@ -55,7 +55,11 @@ class Result:
         ``final_vertices`` (lists of (n_i, 2) arrays, m), ``fixed`` (bool per
         block), ``walls`` (list of (2, 2) segments), ``contacts`` with ``points``
         (m, 2), ``normals`` (m, 2), ``state`` (m,) in {OPEN, STICK, SLIP},
-        ``fn``, ``fs`` (kN/m), ``monitors`` (name -> initial point or section ends).
+        ``fn``, ``fs`` (kN/m), ``monitors`` (name -> initial point or section ends),
+        ``stress`` (n, 3) block stresses sxx, syy, sxy (kPa, compression
+        positive), ``centroids`` (n, 2) current centroids (m), ``excavated``
+        (n,) bool, ``bolts`` (list of (2, 2) current anchor positions, m, in
+        the order of ``bolts``).
       history: per increment: ``stage``, ``step``, ``load_factor`` and
         ``monitors`` (name -> scalar: |u| for a point, convergence for a section).
     """
@@ -190,6 +194,24 @@ def block_stress(n_blocks, area, centroid, snap) -> np.ndarray:
 _BOLT_STATES = {0: "elastic", 1: "yielded", 2: "pulled out"}
 
 
+def bolt_anchors(model, state) -> list[np.ndarray]:
+    """Current anchor positions of each bolt: a list of (2, 2) arrays (m), for plotting.
+
+    Anchor ``a`` of bolt ``b`` sits on block ``model.bolt_blocks[b, a]`` at
+    ``model.bolt_offsets[b, a]`` from its centroid at rotation 0, so its
+    current position is that centroid plus the offset rotated by the block's
+    rotation. Empty when the model has no bolts.
+    """
+    blocks = np.asarray(getattr(model, "bolt_blocks", np.zeros((0, 2), int))).reshape(-1, 2)
+    if not len(blocks):
+        return []
+    offsets = np.asarray(model.bolt_offsets, dtype=float).reshape(-1, 2, 2)
+    cen = np.asarray(state.centroid, dtype=float)
+    rot = np.asarray(state.rot, dtype=float)
+    ends = cen[blocks] + _rotate(offsets, rot[blocks])
+    return [ends[b] for b in range(len(ends))]
+
+
 def build_result(scene, model, layout, state, ref, info, records, history, timing) -> Result:
     """Assemble the host Result from the final state and the increment records.
 
@@ -272,6 +294,7 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
         "monitors": {name: m["points"] for name, m in layout.monitors.items()},
         "stress": stress,
         "centroids": cen[:nr],
+        "bolts": bolt_anchors(model, state),
     }
     hist = [{"stage": h["stage"], "step": h["step"], "load_factor": h["load_factor"],
              "monitors": {k: _scalar(v) for k, v in h["monitors"].items()}} for h in history]

@@ -359,3 +359,14 @@ def test_progress_bar_terminal_redraws_in_place():
         bar(_event("a", 2, 2))
     assert stream.text.count("\r") == 2 and stream.text.endswith("\n")
     assert stream.text.count("\n") == 1
+
+
+def test_demo_solves_the_bundled_tunnel(tmp_path, capsys):
+    """The README's quick start: `jaxdem demo` solves the bundled tunnel and writes results."""
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out)]) == 0
+    result = json.loads((out / "result.json").read_text())
+    assert result["converged"] and result["stable"]
+    assert result["monitors"]["span"]["convergence"] > 0  # the tunnel closes in
+    assert all(b["state"] in ("elastic", "yielded", "pulled out") for b in result["bolts"])
+    assert (out / "blocks.png").stat().st_size > 0

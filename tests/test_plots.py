@@ -193,3 +193,144 @@ def _scene():
 def test_plot_scene_check(tmp_path):
     path = plots.plot_scene_check(_scene(), tmp_path / "check.png")
     _assert_png(path)
+
+
+# ---------------------------------------------------------------------------
+# Principal stresses, bolts, excavated blocks, stage sections
+
+
+def make_tunnel_result() -> Result:
+    """A 4 x 3 grid of unit squares with the middle of the bottom-but-one row
+    excavated, block stresses (one in tension), two bolts (elastic, yielded),
+    a section and a point monitor over two stages."""
+    initial = [_square(i, j, 1.0) for j in range(3) for i in range(4)]
+    n = len(initial)
+    excavated = np.zeros(n, dtype=bool)
+    excavated[[5, 6]] = True
+    fixed = np.array([j == 0 for j in range(3) for _ in range(4)])
+    u = np.zeros((n, 3))
+    u[8:, 1] = -2e-3
+    final = [v + d[:2] for v, d in zip(initial, u, strict=True)]
+    centroids = np.array([v.mean(axis=0) for v in final])
+    stress = np.tile([300.0, 120.0, 40.0], (n, 1))
+    stress[9] = [-50.0, 80.0, 0.0]  # tension along x
+    stress[excavated] = 0.0
+    result = make_result()
+    result.scene = "tunnel grid"
+    result.blocks = [
+        {
+            "id": k,
+            "centroid": initial[k].mean(axis=0).tolist(),
+            "u": u[k].tolist(),
+            "stress": stress[k].tolist(),
+            "fixed": bool(fixed[k]),
+            **({"excavated": True} if excavated[k] else {}),
+        }
+        for k in range(n)
+    ]
+    result.bolts = [
+        {"id": 0, "force": 42.0, "force_per_m": 42.0, "state": "elastic"},
+        {"id": 1, "force": 150.0, "force_per_m": 150.0, "state": "yielded"},
+    ]
+    result.stages = [
+        {"name": "in situ", "monitors": {"s1": [0.0, 0.0], "crown": [0.0, 1e-4]}},
+        {"name": "excavate", "monitors": {"s1": [1e-3, 2.5e-3], "crown": [1e-3, 3e-3]}},
+    ]
+    result.geometry.update(
+        initial_vertices=initial,
+        final_vertices=final,
+        fixed=fixed,
+        excavated=excavated,
+        stress=stress,
+        centroids=centroids,
+        bolts=[np.array([[1.5, 2.5], [1.5, 2.95]]), np.array([[2.5, 2.5], [2.6, 2.95]])],
+        monitors={"crown": np.array([1.5, 2.0]), "s1": np.array([[1.0, 1.5], [3.0, 1.5]])},
+    )
+    return result
+
+
+def test_principal_stresses_hand_cases():
+    sigma, directions = plots.principal_stresses([[3.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    assert sigma[0] == pytest.approx([3.0, 1.0])
+    assert np.abs(directions[0, 0]) == pytest.approx([1.0, 0.0])
+    assert np.abs(directions[0, 1]) == pytest.approx([0.0, 1.0])
+    assert sigma[1] == pytest.approx([1.0, -1.0])
+    r = np.sqrt(0.5)
+    d1 = directions[1, 0] * np.sign(directions[1, 0, 0])
+    d2 = directions[1, 1] * np.sign(directions[1, 1, 0])
+    assert d1 == pytest.approx([r, r])  # +1 at 45 degrees
+    assert d2 == pytest.approx([r, -r])  # -1 at -45 degrees
+    # A single (3,) stress, and unit, orthogonal directions for a general one.
+    sigma, directions = plots.principal_stresses([300.0, 120.0, 40.0])
+    assert sigma.shape == (1, 2) and sigma[0, 0] > sigma[0, 1]
+    assert directions[0] @ directions[0].T == pytest.approx(np.eye(2))
+
+
+def test_stress_crosses_lengths_and_colours():
+    sigma = np.array([[4000.0, -1000.0]])
+    directions = np.array([[[1.0, 0.0], [0.0, 1.0]]])
+    segments, colours = plots.stress_crosses(np.array([[1.0, 2.0]]), sigma, directions, 2000.0)
+    assert segments.shape == (2, 2, 2)
+    assert segments[0] == pytest.approx(
+        np.array([[0.0, 2.0], [2.0, 2.0]])
+    )  # 4000 kPa -> 2 m along x
+    assert segments[1] == pytest.approx(np.array([[1.0, 1.75], [1.0, 2.25]]))  # 1000 kPa -> 0.5 m
+    assert colours == [plots._COMPRESSION, plots._TENSION]
+
+
+@pytest.mark.parametrize(
+    ("x", "expected"), [(1.0, 1.0), (1.3, 1.5), (2.2, 2.5), (3.5, 4.0), (6.1e3, 8e3), (9e3, 1e4)]
+)
+def test_nice_ceil(x, expected):
+    assert plots.nice_ceil(x) == pytest.approx(expected)
+
+
+def test_write_figures_with_stresses_bolts_and_stages(tmp_path):
+    paths = plots.write_figures(make_tunnel_result(), tmp_path / "figs")
+    names = [p.name for p in paths]
+    assert names == ["blocks.png", "monitors.png", "stresses.png", "sections.png"]
+    for p in paths:
+        _assert_png(p)
+
+
+def test_excavated_blocks_and_bolts_on_plot_blocks(tmp_path):
+    result = make_tunnel_result()
+    path = plots.plot_blocks(result, tmp_path / "b.png")
+    _assert_png(path)
+    # The excavated blocks get no displacement arrow even when they moved.
+    result.blocks[5]["u"] = [1.0, 1.0, 0.0]
+    _assert_png(plots.plot_blocks(result, tmp_path / "b2.png"))
+
+
+def test_no_stress_or_stage_figures_without_data(tmp_path):
+    result = make_result()  # zero stresses, no stages
+    assert plots.plot_principal_stresses(result, tmp_path / "s.png") is None
+    assert plots.plot_sections(result, tmp_path / "c.png") is None
+    assert not any(tmp_path.iterdir())
+
+
+def test_sections_points_only(tmp_path):
+    result = make_tunnel_result()
+    result.stages = [{"name": "only", "monitors": {"crown": [2e-3]}}]
+    _assert_png(plots.plot_sections(result, tmp_path / "sections.png"))
+
+
+def test_many_block_stresses_are_thinned(tmp_path):
+    n = 100  # 10,000 blocks: crosses on a 50 x 50 grid
+    initial = [_square(i, j, 1.0) for i in range(n) for j in range(n)]
+    c = np.array([v.mean(axis=0) for v in initial])
+    stress = np.stack([1000.0 + 10 * c[:, 1], 500.0 + 0 * c[:, 0], 50 * np.sin(c[:, 0])], axis=1)
+    result = make_result()
+    result.blocks = [
+        {"id": k, "centroid": c[k].tolist(), "u": [0.0, 0.0, 0.0]} for k in range(n * n)
+    ]
+    result.geometry.update(
+        initial_vertices=initial,
+        final_vertices=initial,
+        fixed=np.zeros(n * n, dtype=bool),
+        stress=stress,
+        centroids=c,
+    )
+    keep = plots._nearest_centre_per_cell(c, np.ones(len(c), dtype=bool), plots._CROSS_GRID)
+    assert keep.sum() == plots._CROSS_GRID**2
+    _assert_png(plots.plot_principal_stresses(result, tmp_path / "stresses.png"))
