@@ -334,7 +334,7 @@ def _move(state: State, du):
                                u=state.u + du[:, :2], rot=state.rot + th)
 
 
-def water_force(model: Model, geo, prop, water_x, water_y):
+def water_force(model: Model, geo, prop, water_x, water_y, scale=1.0):
     """Pore-pressure force on each joint slot, gamma_w (y_table(x) - y) x share (kN/m).
 
     Hydrostatic below the table, zero above it; none on intact bonds and walls.
@@ -342,7 +342,7 @@ def water_force(model: Model, geo, prop, water_x, water_y):
     p = geo["point"]
     head = jnp.interp(p[:, 0], water_x, water_y) - p[:, 1]
     on_joint = geo["active"] & ~prop["bonded"] & ~model.joint_intact[geo["joint"]]
-    return jnp.where(on_joint, model.gamma_w * jnp.maximum(head, 0.0) * geo["share"], 0.0)
+    return jnp.where(on_joint, scale * model.gamma_w * jnp.maximum(head, 0.0) * geo["share"], 0.0)
 
 
 def _bolt_geometry(model: Model, state: State):
@@ -379,7 +379,7 @@ def _substep(model: Model, state: State, loads: Loads):
     Bs = b_rows(free, geo["a"], geo["b"], geo["point"], geo["point"], geo["tangent"],
                 state.centroid)
     if model.has_water:
-        pw = water_force(mdl, geo, prop, loads.water_x, loads.water_y)
+        pw = water_force(mdl, geo, prop, loads.water_x, loads.water_y, loads.water_scale)
     else:
         pw = jnp.zeros_like(fs_old)
     bolt = None
@@ -569,7 +569,8 @@ def _preload(model: Model, state: State, loads: Loads, sigma, surface_y, gamma, 
     return new, (count > state.capacity) | cell_full
 
 
-def make_loads(model: Model, force, water_x=None, water_y=None, bolt_active=None) -> Loads:
+def make_loads(model: Model, force, water_x=None, water_y=None, bolt_active=None,
+               water_scale=1.0) -> Loads:
     """Loads for one increment: block forces (N, 3), optional water table and bolt switches."""
     dtype = model.radius.dtype
     no_water = jnp.array([0.0, 1.0], dtype), jnp.array([-1e30, -1e30], dtype)
@@ -577,6 +578,7 @@ def make_loads(model: Model, force, water_x=None, water_y=None, bolt_active=None
         force=jnp.asarray(force, dtype),
         water_x=no_water[0] if water_x is None else jnp.asarray(water_x, dtype),
         water_y=no_water[1] if water_y is None else jnp.asarray(water_y, dtype),
+        water_scale=jnp.asarray(water_scale, dtype),
         bolt_active=(jnp.ones(model.n_bolts, bool) if bolt_active is None
                      else jnp.asarray(bolt_active)))
 
@@ -602,9 +604,9 @@ class _Driver:
         self.water_y = (np.interp(xs, *np.asarray(water.table, float).T)
                         if water is not None else np.full(xs.shape, -1e30))
 
-    def loads(self, force, water_y=None):
+    def loads(self, force, water_y=None, water_scale=1.0):
         wy = self.water_y if water_y is None else water_y
-        return make_loads(self.model, force, self.water_x, wy, self.bolt_active)
+        return make_loads(self.model, force, self.water_x, wy, self.bolt_active, water_scale)
 
     def step(self, stage, k, n, loads):
         from jaxdem.results import monitor_values
@@ -693,7 +695,10 @@ def solve(scene, set: dict | None = None, progress=None):
     if in_situ is None:
         n = layout.load_steps
         for k in range(1, n + 1):
-            if not d.step("loading", k, n, d.loads(k / n * (layout.weight + layout.traction))):
+            # Pore pressure grows with the weight: a saturated slope is loaded
+            # as a whole, not by full water pressure on a weightless mass.
+            loads = d.loads(k / n * (layout.weight + layout.traction), water_scale=k / n)
+            if not d.step("loading", k, n, loads):
                 break
         base = layout.weight + layout.traction
     else:

@@ -208,7 +208,7 @@ def grow_capacity(state: State, capacity: int) -> State:
     return dataclasses.replace(state, capacity=capacity, **fields)
 
 
-@_pytree(data=["force", "water_x", "water_y", "bolt_active"], meta=[])
+@_pytree(data=["force", "water_x", "water_y", "water_scale", "bolt_active"], meta=[])
 @dataclasses.dataclass(frozen=True)
 class Loads:
     """What the host applies in one increment.
@@ -218,10 +218,13 @@ class Loads:
         centroid): self-weight, tractions, support pressure, and the part of
         the excavated blocks' forces not yet released.
       water_x, water_y: (W,) water table polyline (m); unused without water.
+      water_scale: scalar, fraction of the pore pressure applied (ramped with
+        self-weight while a scene without in-situ stress is loaded).
       bolt_active: (B,) bool, the bolt is installed.
     """
 
     force: jax.Array
     water_x: jax.Array
     water_y: jax.Array
+    water_scale: jax.Array
     bolt_active: jax.Array

@@ -87,8 +87,8 @@ def test_support_pressure_above_weight_over_width_holds(factor, holds):
         assert r.converged
 
 
-def _wet_incline(table_y):
-    d = block_on_incline(20.0, 30.0)
+def _wet_incline(table_y, load_steps=1):
+    d = block_on_incline(20.0, 30.0, load_steps=load_steps)
     if table_y is not None:
         d["water"] = {"table": [[-10.0, table_y], [20.0, table_y]]}
     return d
@@ -106,6 +106,16 @@ def test_block_slides_when_the_water_table_rises_above_the_effective_stress_thre
     assert jaxdem.solve(parse_scene(_wet_incline(h_star - 0.1))).stable
     wet = jaxdem.solve(parse_scene(_wet_incline(h_star + 0.1)))
     assert not wet.stable and wet.moving_blocks == [1]
+
+
+def test_water_threshold_does_not_depend_on_load_steps():
+    """Pore pressure is ramped with self-weight, so the wet block is not knocked
+    off by full water pressure on a partly loaded block in the first step."""
+    a, phi, W = math.radians(20.0), math.radians(30.0), 25.0
+    y_mid = 4.5 * math.sin(a)
+    h_star = y_mid + W * (math.cos(a) - math.sin(a) / math.tan(phi)) / 9.81
+    assert jaxdem.solve(parse_scene(_wet_incline(h_star - 0.1, load_steps=4))).stable
+    assert not jaxdem.solve(parse_scene(_wet_incline(h_star + 0.1, load_steps=4))).stable
 
 
 def _grid_in_situ(mode, stages):
