@@ -1,14 +1,14 @@
 """Incremental static solver: increment (jitted), load steps, and the host driver.
 
-One increment applies the load factor ``lam`` and looks for static
-equilibrium with large displacements:
+One increment applies the loads of one load step (block forces, water table,
+installed bolts) and looks for static equilibrium with large displacements:
 
   repeat (geometry sub-steps, ``lax.while_loop``):
     detect contacts at the current geometry, carry each slot's history;
     Newton iteration on the increment du of the free blocks
     (``lax.while_loop``): trial spring forces from the gaps and the
     committed shear forces, tension cut-off and Mohr-Coulomb, residual
-    R = lam F_ext + sum B^T f; solve (K_t + eps M) ddu = R, where K_t is the
+    R = F_ext + sum B^T f; solve (K_t + eps M) ddu = R, where K_t is the
     tangent of the current states (open: none; slipping: normal spring only,
     which keeps K_t symmetric) and eps M a small pseudo-mass;
     the step is shortened so that no block travels more than
@@ -720,7 +720,10 @@ def solve(scene, set: dict | None = None, progress=None):
         d.state = st
         d.step("initial", 1, 1, d.loads(base))
     plan = _stage_plan(scene)
-    d.ref = d.state if (plan or in_situ is not None) else None
+    # Displacements count from the state before the first stage, once there
+    # is one and the loading before it found equilibrium.
+    started = (plan or in_situ is not None) and d.status == Status.CONVERGED
+    d.ref = d.state if started else None
     for stage in plan:
         if d.status != Status.CONVERGED:
             break
