@@ -118,7 +118,8 @@ def main(argv=None) -> int:
             print(f"solving {STEP_STUDY} with load_steps = {n} ...", flush=True)
             steps[n] = run(STEP_STUDY, {"solver.load_steps": n}, f"{STEP_STUDY}_steps_{n}")
 
-    print("\n| scene | status | blocks | solve s | monitors (section convergence / point |u|, mm) |")
+    print("\n| scene | status | blocks | solve s "
+          "| monitors (section convergence / point |u|, mm) |")
     print("|---|---|---|---|---|")
     for row in list(rows.values()) + list(steps.values()):
         mon = ", ".join(f"{k} {1e3 * v:.3f}" for k, v in row["monitors"].items())
@@ -126,24 +127,27 @@ def main(argv=None) -> int:
               f"{row['wall_s']:.1f} | {mon} |")
 
     if {"seed_example3_with_D", "seed_example3_without_D"} <= rows.keys():
-        w, wo = (stress_near_a(rows[k]) for k in ("seed_example3_with_D", "seed_example3_without_D"))
+        pair = ("seed_example3_with_D", "seed_example3_without_D")
+        w, wo = (stress_near_a(rows[k]) for k in pair)
         print("\nExample 3: major principal stress (kPa) in blocks within one diameter of tunnel a")
         print(f"  with D:    max {w['max']:9.1f}  mean {w['mean']:8.1f}  ({w['n']} blocks)")
         print(f"  without D: max {wo['max']:9.1f}  mean {wo['mean']:8.1f}  ({wo['n']} blocks)")
         holds = w["max"] > wo["max"] and w["mean"] > wo["mean"]
-        print(f"  'with D the stresses concentrate around tunnel a': {'holds' if holds else 'does NOT hold'}")
+        verdict = "holds" if holds else "does NOT hold"
+        print(f"  'with D the stresses concentrate around tunnel a': {verdict}")
     if {"seed_example4_slope_dry", "seed_example4_slope_wet"} <= rows.keys():
         dry, wet = rows["seed_example4_slope_dry"], rows["seed_example4_slope_wet"]
         print("\nExample 4: dry vs saturated (mm)")
         for k in ("section 1-1", "section 2-2"):
             a, b = dry["monitors"].get(k, float("nan")), wet["monitors"].get(k, float("nan"))
-            print(f"  {k}: dry {1e3 * a:.4f}  saturated {1e3 * b:.4f}  "
-                  f"{'saturated moves more' if abs(b) > abs(a) else 'saturated does NOT move more'}")
+            verdict = "saturated moves more" if abs(b) > abs(a) else "saturated does NOT move more"
+            print(f"  {k}: dry {1e3 * a:.4f}  saturated {1e3 * b:.4f}  {verdict}")
     if steps:
         print("\nExample 4 (dry): section convergence (mm) against load steps")
         for k in ("section 1-1", "section 2-2"):
             vals = [steps[n]["monitors"].get(k, float("nan")) for n in LOAD_STEPS]
-            print(f"  {k}: " + "  ".join(f"n={n}: {1e3 * v:.4f}" for n, v in zip(LOAD_STEPS, vals)))
+            pairs = zip(LOAD_STEPS, vals, strict=True)
+            print(f"  {k}: " + "  ".join(f"n={n}: {1e3 * v:.4f}" for n, v in pairs))
     return 0
 
 
