@@ -789,10 +789,7 @@ def _parse_discontinuities(
         a = _point(t["from"], f"{p}.from")
         b = _point(t["to"], f"{p}.to")
         if "joint" in t:
-            joint = _string(t["joint"], f"{p}.joint")
-            if joint not in joints:
-                defined = ", ".join(joints) or "none"
-                raise SceneError(f"{p}.joint", f"unknown joint {joint!r}; defined: {defined}")
+            joint = _defined_name(t["joint"], f"{p}.joint", "joint", joints)
         elif default_joint:
             joint = default_joint
         else:
@@ -985,14 +982,19 @@ def _polygon(t: dict, key: str, path: str) -> np.ndarray:
     return v
 
 
+def _defined_name(value: Any, path: str, kind: str, names, none: str = "none") -> str:
+    """A string that names one of ``names`` (a material, joint, stage, ...), else SceneError."""
+    name = _string(value, path)
+    if name not in names:
+        defined = ", ".join(names) or none
+        raise SceneError(path, f"unknown {kind} {name!r}; defined: {defined}")
+    return name
+
+
 def _material_ref(t: dict, path: str, materials: dict[str, Material]) -> str:
     if "material" not in t:
         raise SceneError(f"{path}.material", "required field is missing")
-    mat = _string(t["material"], f"{path}.material")
-    if mat not in materials:
-        defined = ", ".join(materials) or "none"
-        raise SceneError(f"{path}.material", f"unknown material {mat!r}; defined: {defined}")
-    return mat
+    return _defined_name(t["material"], f"{path}.material", "material", materials)
 
 
 def _name(
@@ -1082,12 +1084,9 @@ def _parse_stages(data: dict) -> tuple[Stage, ...]:
 def _stage_ref(t: dict, path: str, stages: tuple[Stage, ...]) -> str | None:
     if "stage" not in t:
         return None
-    name = _string(t["stage"], f"{path}.stage")
     names = [s.name for s in stages]
-    if name not in names:
-        defined = ", ".join(names) or "none ([[stages]] name = ...)"
-        raise SceneError(f"{path}.stage", f"unknown stage {name!r}; defined: {defined}")
-    return name
+    return _defined_name(t["stage"], f"{path}.stage", "stage", names,
+                         none="none ([[stages]] name = ...)")
 
 
 def _segments_for(radius: float, h: float) -> int:
@@ -1296,10 +1295,7 @@ def _parse_supports(
         t = _table(r, p, SUPPORT_FIELDS)
         if "excavation" not in t:
             raise SceneError(f"{p}.excavation", "required field is missing")
-        exc = _string(t["excavation"], f"{p}.excavation")
-        if exc not in names:
-            defined = ", ".join(names) or "none"
-            raise SceneError(f"{p}.excavation", f"unknown excavation {exc!r}; defined: {defined}")
+        exc = _defined_name(t["excavation"], f"{p}.excavation", "excavation", names)
         out.append(
             Support(
                 excavation=exc,
@@ -1340,12 +1336,8 @@ def _parse(data: Any, source: str) -> Scene:
                 )
 
     if "default_joint" in head:
-        default_joint = _string(head["default_joint"], "scene.default_joint")
-        if default_joint not in joints:
-            defined = ", ".join(joints) or "none"
-            raise SceneError(
-                "scene.default_joint", f"unknown joint {default_joint!r}; defined: {defined}"
-            )
+        default_joint = _defined_name(head["default_joint"], "scene.default_joint", "joint",
+                                      joints)
     elif joints:
         default_joint = next(iter(joints))
     else:
