@@ -265,7 +265,8 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
     if capacity is None:
         capacity = _initial_capacity(verts, nv, free, margin, use_cells)
     cell_capacity = _cell_capacity(verts, radius, big, margin) if use_cells else 1
-    max_substeps = int(math.ceil(max_disp / step_length)) * 3 + 50
+    min_step = min(step_length, 0.25 * float(np.min(radius[:n_rock][free_rock], initial=np.inf)))
+    max_substeps = int(math.ceil(max_disp / min_step)) * 3 + 50
     bolts = _bolts(scene, polys, cents, pieces, tol_geo * 1e3)
     water = getattr(scene, "water", None)
     gamma_w = water.unit_weight if water is not None else 0.0

@@ -12,7 +12,8 @@ installed bolts) and looks for static equilibrium with large displacements:
     tangent of the current states (open: none; slipping: normal spring only,
     which keeps K_t symmetric) and eps M a small pseudo-mass;
     the step is shortened so that no block travels more than
-    ``step_length`` in one sub-step;
+    ``step_length`` (nor more than a quarter of its own radius) in one
+    sub-step;
     move and rotate the blocks by du (exact rigid motion), commit the
     spring forces and states.
   until a sub-step converges (|R| <= tol F_ref, no state change) with a
@@ -272,6 +273,8 @@ def _newton(model: Model, sub: _Sub, st0):
     band = 0.1 * tol
     zeros_s = jnp.zeros(S, jnp.int32)
     allow = 0.02 * model.step_length
+    # A small block moves at most a quarter of its radius per sub-step.
+    step = jnp.minimum(model.step_length, 0.25 * model.radius)
 
     def cond(c):
         return ~c["done"]
@@ -285,11 +288,14 @@ def _newton(model: Model, sub: _Sub, st0):
         newly = (flips >= 4) & ~c["frozen"]
         frozen = c["frozen"] | newly
         frozen_state = jnp.where(newly, ev["state"], c["frozen_state"])
-        stalled = (rnorm > 0.9 * c["rprev"]) & ~jnp.any(changed)
-        ddu = solve(model, sub, _stiffness_terms(model, sub, ev, stalled), ev["R"])
+        # Three iterations in a row without progress or state change: the
+        # secant iteration has stalled on a mechanism; take the slip tangent.
+        slow = (rnorm > 0.98 * c["rprev"]) & ~jnp.any(changed)
+        stall = jnp.where(slow, c["stall"] + 1, 0)
+        ddu = solve(model, sub, _stiffness_terms(model, sub, ev, stall >= 3), ev["R"])
         t_now = _travel(model, c["du"])
         t_step = _travel(model, ddu)
-        room = jnp.maximum(model.step_length - t_now, 0.0)
+        room = jnp.maximum(step - t_now, 0.0)
         s_travel = jnp.min(jnp.where(t_step > room, room / jnp.where(t_step > 0, t_step, 1.0), 1.0))
         # An open slot may close during the step, but not sink deeper than a
         # small allowance: a free block lands on its support, it does not
@@ -307,13 +313,13 @@ def _newton(model: Model, sub: _Sub, st0):
         done = converged | clipped | ~finite | (it >= model.max_iterations)
         return dict(du=du, st=ev["state"], flips=flips, frozen=frozen, frozen_state=frozen_state,
                     it=it, done=done, converged=converged, clipped=clipped & ~converged,
-                    finite=finite, rnorm=rnorm / tol * model.tol, rprev=rnorm)
+                    finite=finite, rnorm=rnorm / tol * model.tol, rprev=rnorm, stall=stall)
 
     init = dict(du=jnp.zeros((N, 3), sub.load.dtype), st=st0, flips=zeros_s,
                 frozen=jnp.zeros(S, bool), frozen_state=zeros_s, it=jnp.array(0),
                 done=jnp.array(False), converged=jnp.array(False), clipped=jnp.array(False),
                 finite=jnp.array(True), rnorm=jnp.array(jnp.inf, sub.load.dtype),
-                rprev=jnp.array(jnp.inf, sub.load.dtype))
+                rprev=jnp.array(jnp.inf, sub.load.dtype), stall=jnp.array(0))
     c = jax.lax.while_loop(cond, body, init)
     ev = _evaluate(model, sub, c["du"], c["frozen"], c["frozen_state"], c["st"], band)
     return c["du"], ev, c
