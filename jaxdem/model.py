@@ -135,7 +135,7 @@ class _Piece:
 
 def _pieces(scene, tol) -> list[_Piece]:
     """Explicit blocks (assigned to the excavation holding their centroid) and generated ones."""
-    excavations = getattr(scene, "excavations", ())
+    excavations = scene.excavations
     out = []
     for b in scene.blocks:
         v = np.asarray(b.vertices, float)
@@ -143,7 +143,7 @@ def _pieces(scene, tol) -> list[_Piece]:
         exc = next((e.name for e in excavations
                     if geometry.point_in_polygon(c, np.asarray(e.vertices, float), tol)), None)
         out.append(_Piece(v, b.material, bool(b.fixed), exc, None))
-    if getattr(scene, "domain", None) is not None:
+    if scene.domain is not None:
         from jaxdem import rockmass
 
         for pc in rockmass.generate(scene).pieces:
@@ -161,7 +161,7 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
     dtype = np.float64 if s.dtype == "float64" else np.float32
     allv0 = np.concatenate([np.asarray(b.vertices, float) for b in scene.blocks]
                            + ([np.asarray(scene.domain.outline, float)]
-                              if getattr(scene, "domain", None) is not None else []))
+                              if scene.domain is not None else []))
     size = float(np.linalg.norm(allv0.max(0) - allv0.min(0)))
     tol_geo = 1e-9 * size
     pieces = _pieces(scene, tol_geo * 1e3)
@@ -268,7 +268,7 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
     min_step = min(step_length, 0.25 * float(np.min(radius[:n_rock][free_rock], initial=np.inf)))
     max_substeps = int(math.ceil(max_disp / min_step)) * 3 + 50
     bolts = _bolts(scene, polys, cents, pieces, tol_geo * 1e3)
-    water = getattr(scene, "water", None)
+    water = scene.water
     gamma_w = water.unit_weight if water is not None else 0.0
 
     model = Model(
@@ -308,7 +308,7 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
     )
     excavation = [pc.excavation for pc in pieces]
     supports = []
-    for sp in getattr(scene, "supports", ()):
+    for sp in scene.supports:
         exc = next(e for e in scene.excavations if e.name == sp.excavation)
         outline = np.asarray(exc.vertices, float)
         segs = list(zip(outline, np.roll(outline, -1, axis=0), strict=True))
@@ -354,7 +354,7 @@ def _face_loads(polys, cents, n_blocks, segments, traction_of, tol):
 def _bolts(scene, polys, cents, pieces, tol) -> dict:
     """Bolt anchors: the rock block (not excavated) holding each end, and per-metre properties."""
     rows = []
-    for b in getattr(scene, "bolts", ()):
+    for b in scene.bolts:
         ends = []
         for p in (np.asarray(b.start, float), np.asarray(b.end, float)):
             k = next(i for i, poly in enumerate(polys)

@@ -496,14 +496,14 @@ def increment(model: Model, state: State, loads: Loads):
 _COMPILED: dict = {}
 
 
-def _compiled_increment(model: Model, state: State, lam):
+def _compiled_increment(model: Model, state: State, loads: Loads):
     """The compiled increment for these shapes and static settings, and its compile time (s)."""
-    leaves, tree = jax.tree.flatten((model, state, lam))
+    leaves, tree = jax.tree.flatten((model, state, loads))
     key = (tree, tuple((x.shape, str(x.dtype)) for x in leaves))
     if key in _COMPILED:
         return _COMPILED[key], 0.0
     t0 = time.perf_counter()
-    fn = increment.lower(model, state, lam).compile()
+    fn = increment.lower(model, state, loads).compile()
     _COMPILED[key] = fn
     return fn, time.perf_counter() - t0
 
@@ -598,12 +598,13 @@ class _Driver:
         self.compile_s = self.solve_s = 0.0
         self.records, self.history = [], []
         self.info = None
+        self.ref = None  # the state displacements are measured from (None: the start)
         self.status = Status.CONVERGED
         nb = model.n_bolts
         self.bolt_active = np.zeros(nb, bool)
-        water = getattr(scene, "water", None)
+        water = scene.water
         tables = ([water.table] if water is not None else []) + [
-            st.water_table for st in getattr(scene, "stages", ()) if st.water_table is not None]
+            st.water_table for st in scene.stages if st.water_table is not None]
         xs = np.unique(np.concatenate([np.asarray(t, float)[:, 0] for t in tables])) \
             if tables else np.array([0.0, 1.0])
         self.water_x = xs
@@ -629,8 +630,7 @@ class _Driver:
                    residual=float(info["residual"]), imbalance=_imbalance(info["balance"]))
         self.records.append(rec)
         self.history.append(dict(stage=stage, step=k, load_factor=k / n,
-                                 monitors=monitor_values(self.layout, self.state,
-                                                         getattr(self, "ref", None))))
+                                 monitors=monitor_values(self.layout, self.state, self.ref)))
         if self.progress is not None:
             self.progress(dict(stage=stage, step=k, n_steps=n, status=self.status.label,
                                iterations=rec["iterations"], substeps=rec["substeps"],
@@ -695,7 +695,7 @@ def solve(scene, set: dict | None = None, progress=None):
     d = _Driver(model, state, layout, scene, progress)
     n_rock = layout.n_rock
     N = model.n_blocks
-    in_situ = getattr(scene, "in_situ", None)
+    in_situ = scene.in_situ
     base = np.zeros((N, 3))
     pending = np.zeros((N, 3))  # applied over the first stage (uniform in-situ mode)
     if in_situ is None:
@@ -764,10 +764,10 @@ def solve(scene, set: dict | None = None, progress=None):
 
 def _stage_plan(scene) -> list[dict]:
     """The stages after the initial state, in order, with what each one does."""
-    excavations = getattr(scene, "excavations", ())
-    stages = list(getattr(scene, "stages", ()))
-    if not stages and (excavations or getattr(scene, "supports", ())
-                       or getattr(scene, "bolts", ())):
+    excavations = scene.excavations
+    stages = list(scene.stages)
+    if not stages and (excavations or scene.supports
+                       or scene.bolts):
         return [dict(name="excavation", first=True, load_steps=None, water_table=None,
                      excavations={e.name for e in excavations})]
     first = stages[0].name if stages else None
