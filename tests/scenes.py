@@ -31,24 +31,35 @@ def rect_on_slope(alpha_deg: float, s0: float, width: float, height: float):
     return [list(c) for c in corners]
 
 
+def _block_on_slope(name: str, alpha_deg: float, width: float, height: float, joint: tuple,
+                    solver: dict, *, stop_at: float | None = None) -> dict:
+    """A free block on a fixed slope (from slope coordinate 4 m), a point monitor at its
+    centroid; ``joint`` = (name, properties); ``stop_at``: a fixed 1 m block from there."""
+    blk = rect_on_slope(alpha_deg, 4.0, width, height)
+    blocks = [
+        {"vertices": slope_base(alpha_deg), "material": "rock", "fixed": True},
+        {"vertices": blk, "material": "rock"},
+    ]
+    if stop_at is not None:
+        blocks.append({"vertices": rect_on_slope(alpha_deg, stop_at, 1.0, 1.0),
+                       "material": "rock", "fixed": True})
+    return {
+        "scene": {"name": name},
+        "solver": solver,
+        "materials": {"rock": dict(ROCK)},
+        "joints": {joint[0]: joint[1]},
+        "blocks": blocks,
+        "monitors": [{"name": "block", "point": np.mean(np.array(blk), axis=0).tolist()}],
+    }
+
+
 def block_on_incline(alpha_deg: float, friction_deg: float, *, cohesion: float = 0.0,
                      width: float = 1.0, height: float = 1.0, kn: float = 1e6, ks: float = 5e5,
                      load_steps: int = 1, **solver) -> dict:
     """A block resting on a fixed slope, with a point monitor at its centroid."""
-    blk = rect_on_slope(alpha_deg, 4.0, width, height)
-    c = np.mean(np.array(blk), axis=0)
-    return {
-        "scene": {"name": f"incline {alpha_deg}/{friction_deg}"},
-        "solver": {"load_steps": load_steps, **solver},
-        "materials": {"rock": dict(ROCK)},
-        "joints": {"base": {"kn": kn, "ks": ks, "friction_deg": friction_deg,
-                            "cohesion": cohesion}},
-        "blocks": [
-            {"vertices": slope_base(alpha_deg), "material": "rock", "fixed": True},
-            {"vertices": blk, "material": "rock"},
-        ],
-        "monitors": [{"name": "block", "point": c.tolist()}],
-    }
+    joint = {"kn": kn, "ks": ks, "friction_deg": friction_deg, "cohesion": cohesion}
+    return _block_on_slope(f"incline {alpha_deg}/{friction_deg}", alpha_deg, width, height,
+                           ("base", joint), {"load_steps": load_steps, **solver})
 
 
 def stack(n_blocks: int = 3, *, kn: float = 1e6, ks: float = 1e6, width: float = 1.0,
@@ -72,35 +83,14 @@ def stack(n_blocks: int = 3, *, kn: float = 1e6, ks: float = 1e6, width: float =
 
 def slide_and_stop(gap: float = 1.0, alpha: float = 30.0, phi: float = 15.0) -> dict:
     """Seed example 1: a block slides down a slope until it meets a fixed block."""
-    blk = rect_on_slope(alpha, 4.0, 1.0, 1.0)
-    stop = rect_on_slope(alpha, 4.0 - gap - 1.0, 1.0, 1.0)
-    c = np.mean(np.array(blk), axis=0)
-    return {
-        "scene": {"name": "seed example 1"},
-        "solver": {"load_steps": 1, "max_displacement": 3.0 * gap},
-        "materials": {"rock": dict(ROCK)},
-        "joints": {"j": {"kn": 1e6, "ks": 5e5, "friction_deg": phi}},
-        "blocks": [
-            {"vertices": slope_base(alpha), "material": "rock", "fixed": True},
-            {"vertices": blk, "material": "rock"},
-            {"vertices": stop, "material": "rock", "fixed": True},
-        ],
-        "monitors": [{"name": "block", "point": c.tolist()}],
-    }
+    joint = {"kn": 1e6, "ks": 5e5, "friction_deg": phi}
+    return _block_on_slope("seed example 1", alpha, 1.0, 1.0, ("j", joint),
+                           {"load_steps": 1, "max_displacement": 3.0 * gap},
+                           stop_at=4.0 - gap - 1.0)
 
 
 def tall_block(width: float, height: float, alpha: float = 20.0, phi: float = 40.0) -> dict:
     """A block on a slope with friction high enough to stop sliding."""
-    blk = rect_on_slope(alpha, 4.0, width, height)
-    c = np.mean(np.array(blk), axis=0)
-    return {
-        "scene": {"name": f"toppling {width}x{height}"},
-        "solver": {"load_steps": 1, "max_displacement": 0.3 * height},
-        "materials": {"rock": dict(ROCK)},
-        "joints": {"j": {"kn": 1e6, "ks": 5e5, "friction_deg": phi}},
-        "blocks": [
-            {"vertices": slope_base(alpha), "material": "rock", "fixed": True},
-            {"vertices": blk, "material": "rock"},
-        ],
-        "monitors": [{"name": "block", "point": c.tolist()}],
-    }
+    joint = {"kn": 1e6, "ks": 5e5, "friction_deg": phi}
+    return _block_on_slope(f"toppling {width}x{height}", alpha, width, height, ("j", joint),
+                           {"load_steps": 1, "max_displacement": 0.3 * height})
