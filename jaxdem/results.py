@@ -197,19 +197,16 @@ _BOLT_STATES = {0: "elastic", 1: "yielded", 2: "pulled out"}
 def bolt_anchors(model, state) -> list[np.ndarray]:
     """Current anchor positions of each bolt: a list of (2, 2) arrays (m), for plotting.
 
-    Anchor ``a`` of bolt ``b`` sits on block ``model.bolt_blocks[b, a]`` at
-    ``model.bolt_offsets[b, a]`` from its centroid at rotation 0, so its
-    current position is that centroid plus the offset rotated by the block's
-    rotation. Empty when the model has no bolts.
+    The same anchors the solver uses (:func:`jaxdem.solver.bolt_geometry`);
+    empty when the model has no bolts.
     """
-    blocks = np.asarray(getattr(model, "bolt_blocks", np.zeros((0, 2), int))).reshape(-1, 2)
-    if not len(blocks):
+    if not model.n_bolts:
         return []
-    offsets = np.asarray(model.bolt_offsets, dtype=float).reshape(-1, 2, 2)
-    cen = np.asarray(state.centroid, dtype=float)
-    rot = np.asarray(state.rot, dtype=float)
-    ends = cen[blocks] + _rotate(offsets, rot[blocks])
-    return [ends[b] for b in range(len(ends))]
+    from jaxdem.solver import bolt_geometry
+
+    g = bolt_geometry(model, state)
+    ends = np.stack([np.asarray(g["point_b"]), np.asarray(g["point_a"])], axis=1)
+    return list(ends)
 
 
 def build_result(scene, model, layout, state, ref, info, records, history, timing) -> Result:

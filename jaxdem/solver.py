@@ -351,7 +351,7 @@ def water_force(model: Model, geo, prop, water_x, water_y, scale=1.0):
     return jnp.where(on_joint, scale * model.gamma_w * jnp.maximum(head, 0.0) * geo["share"], 0.0)
 
 
-def _bolt_geometry(model: Model, state: State):
+def bolt_geometry(model: Model, state: State):
     """Bolt rows: anchors at their current positions, direction from anchor 1 to anchor 2."""
     i, j = model.bolt_blocks[:, 0], model.bolt_blocks[:, 1]
     p1 = state.centroid[i] + _rotate(model.bolt_offsets[:, 0], state.rot[i])
@@ -390,7 +390,7 @@ def _substep(model: Model, state: State, loads: Loads):
         pw = jnp.zeros_like(fs_old)
     bolt = None
     if model.n_bolts:
-        bg = _bolt_geometry(model, state)
+        bg = bolt_geometry(model, state)
         alive_b = state.alive[bg["a"]] & state.alive[bg["b"]] & loads.bolt_active
         bolt = dict(a=bg["a"], b=bg["b"], f_old=state.bolt_force, active=alive_b,
                     B=b_rows(free, bg["a"], bg["b"], bg["point_a"], bg["point_b"], bg["e"],
