@@ -133,7 +133,7 @@ def run_one(n: int, dtype: str, repeats: int) -> dict:
     ref = closed_form_settlement(rows)
     imbalance = solver._imbalance(info["balance"])
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    return dict(blocks=layout.n_rock, dtype=dtype, solver="dense" if model.dense else "cg",
+    return dict(blocks=layout.n_rock, dtype=dtype, solver=model.linear_solver,
                 pairs=n_pairs, build_s=build_s, detect_compile_s=detect_compile_s,
                 detect_s=detect_s, increment_compile_s=compile_s, increment_s=solve_s,
                 iterations=int(info["iterations"]), status=status,

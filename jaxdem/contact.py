@@ -180,7 +180,13 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ey, cy, not_dup):
     par_out = c_out < -model.cos_parallel
     par_in = c_in < -model.cos_parallel
     # A vertex that overlaps near a corner is on the face anti-parallel to its own.
-    near_face = d >= dmax[..., None] - model.margin
+    # "Near" is within the margin, but less than half of Y's least width: the
+    # far face of a thin block is never near.
+    depth = -jnp.sum((q0[:, None, :, :] - q0[:, :, None, :]) * ny[:, :, None, :], axis=-1)
+    depth = jnp.where(emy[:, None, :] & emy[:, :, None], depth, -jnp.inf)  # (P, face, vertex)
+    width = jnp.min(jnp.where(emy, jnp.max(depth, axis=-1), jnp.inf), axis=-1)
+    window = jnp.minimum(model.margin, 0.5 * width)
+    near_face = d >= dmax[..., None] - window[:, None, None]
     score = d + jnp.where(near_face & (par_out | par_in), 1e30, 0.0)
     e = jnp.argmax(score, axis=-1).astype(jnp.int32)
     take = lambda x: jnp.take_along_axis(x, e[..., None], axis=-1)[..., 0]  # noqa: E731
@@ -228,7 +234,8 @@ def narrow_phase(model: Model, verts, centroid, pairs):
     Returns a dict of (S, ...) arrays: ``a`` (vertex block), ``b`` (face
     block), ``active``, ``gap``, ``point``, ``normal``, ``tangent``, ``edge``,
     ``share`` (effective length of the point, m), ``h_a``, ``h_b`` (distances of
-    the centroids from the contact line, m, eqs. 6-7), ``joint`` (joint id).
+    the centroids from the contact line, m, eqs. 6-7), ``joint`` (joint id),
+    ``corner`` (a corner-to-edge point, not part of an edge-to-edge contact).
     """
     N = model.n_blocks
     P = pairs.shape[0]
@@ -267,7 +274,8 @@ def narrow_phase(model: Model, verts, centroid, pairs):
     # spring: h is at least a tenth of the block's radius.
     h_a = jnp.maximum(out["h_x"], 0.1 * model.radius[A])
     h_b = jnp.maximum(out["h_y"], 0.1 * model.radius[B])
-    res.update(a=flat(A), b=flat(B), h_a=flat(h_a), h_b=flat(h_b), joint=flat(joint))
+    res.update(a=flat(A), b=flat(B), h_a=flat(h_a), h_b=flat(h_b), joint=flat(joint),
+               corner=flat(out["own_edge"] < 0))
     return res
 
 

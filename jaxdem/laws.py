@@ -7,6 +7,7 @@ jax.numpy, so they jit, vmap and differentiate.
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
 from jaxdem.state import OPEN, SLIP, STICK, WALL_ROLLER, Model
 
@@ -17,6 +18,12 @@ def intact_stiffness(E, nu):
     Returns (kn_i, ks_i) = (E / (1 - nu^2), E / (1 + nu)).
     """
     return E / (1.0 - nu**2), E / (1.0 + nu)
+
+
+def plane_strain_elasticity(E, nu):
+    """Plane-strain elasticity matrix D (kPa): (sx, sy, txy) = D (ex, ey, gxy)."""
+    f = E / ((1.0 + nu) * (1.0 - 2.0 * nu))
+    return f * np.array([[1.0 - nu, nu, 0.0], [nu, 1.0 - nu, 0.0], [0.0, 0.0, 0.5 - nu]])
 
 
 def equivalent_stiffness(h1, h2, k1_inv, k2_inv, k0_inv):
@@ -45,6 +52,18 @@ def slot_properties(model: Model, geo: dict) -> dict:
     jks_inv = jnp.where(wall, 0.0, 1.0 / model.joint_ks[j])
     kn = equivalent_stiffness(geo["h_a"], geo["h_b"], model.kn_inv[a], model.kn_inv[b], jkn_inv)
     ks = equivalent_stiffness(geo["h_a"], geo["h_b"], model.ks_inv[a], model.ks_inv[b], jks_inv)
+    if model.ndof == 6:
+        # Deformable blocks carry the rock's elasticity themselves: a joint is
+        # its own springs, an intact bond or a wall a stiff penalty spring.
+        bond = wall | model.joint_intact[j]
+        safe = lambda x: jnp.where(bond, 1.0, x)  # noqa: E731
+        no_joint = jnp.zeros_like(jkn_inv)
+        kn_b = equivalent_stiffness(geo["h_a"], geo["h_b"], model.kn_inv[a], model.kn_inv[b],
+                                    no_joint)
+        ks_b = equivalent_stiffness(geo["h_a"], geo["h_b"], model.ks_inv[a], model.ks_inv[b],
+                                    no_joint)
+        kn = jnp.where(bond, model.bond_penalty * kn_b, 1.0 / safe(jkn_inv))
+        ks = jnp.where(bond, model.bond_penalty * ks_b, 1.0 / safe(jks_inv))
     share = geo["share"]
     return dict(
         kn=kn * share,

@@ -25,11 +25,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdem import geometry
-from jaxdem.laws import intact_stiffness
+from jaxdem.laws import intact_stiffness, plane_strain_elasticity
 from jaxdem.state import ROCK, WALL_FIXED, WALL_ROLLER, Model, State, empty_history
 
 _USE_CELLS_ABOVE = 400  # blocks; below this all-pairs boxes are cheaper
-_DENSE_UP_TO = 600  # blocks (1,800 unknowns); above this matrix-free CG
+_DENSE_UP_TO = 1800  # unknowns; above this a sparse direct solve
+BOND_PENALTY = 100.0
+"""Intact bonds between deformable cells: this many times the Hamajima-Kawai spring.
+
+The cells carry the rock's elasticity; the bond only keeps neighbours together,
+and its compliance (about 1 / BOND_PENALTY of a cell's) is the error it adds."""
 
 
 @dataclasses.dataclass
@@ -207,20 +212,26 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
 
     kind = np.array([ROCK] * n_rock + wall_kind, np.int32)
     free = np.concatenate([free_rock, np.zeros(len(walls), bool)])
+    # Intact-rock cells (mesh_size) are deformable constant-strain triangles.
+    deformable = scene.domain is not None and scene.domain.mesh_size is not None
+    D = 6 if deformable else 3
     kn_inv = np.zeros(N)
     ks_inv = np.zeros(N)
-    weight = np.zeros((N, 3))
+    weight = np.zeros((N, D))
+    cell_D = np.zeros((N if deformable else 0, 3, 3))
     for i, pc in enumerate(pieces):
         m = scene.materials[pc.material]
         kn_i, ks_i = intact_stiffness(m.E, m.nu)
         kn_inv[i], ks_inv[i] = 1.0 / kn_i, 1.0 / ks_i
         weight[i, 1] = -m.unit_weight * areas[i]
-    traction = np.zeros((N, 3))
+        if deformable:
+            cell_D[i] = plane_strain_elasticity(m.E, m.nu)
+    traction = np.zeros((N, D))
     for bd in scene.boundaries:
         if bd.condition == "traction":
             traction += _face_loads(polys, cents, N, [(bd.start, bd.end)],
                                     lambda n, tr=bd.traction: np.asarray(tr, float),
-                                    tol_geo * 1e3)
+                                    tol_geo * 1e3, D)
     f_ext = weight + traction
 
     # Joint table: the scene's joints, an intact-rock bond per material, the
@@ -253,7 +264,8 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
     finite_kn = joint_kn[np.isfinite(joint_kn)]
     k_ref = L / (L * k_block + (1.0 / float(np.median(finite_kn)) if finite_kn.size else 0.0))
     rg2 = np.array([_polar_moment(p, c) for p, c in zip(all_polys, all_cents, strict=True)])
-    pseudo_mass = s.regularization * k_ref * np.stack([np.ones(N), np.ones(N), rg2], axis=1)
+    pseudo_mass = s.regularization * k_ref * np.stack(
+        [np.ones(N), np.ones(N)] + [rg2] * (D - 2), axis=1)
     f_ref = float(np.max(np.linalg.norm(f_ext[free, :2], axis=1), initial=0.0))
     if f_ref <= 0:
         f_ref = k_ref * L * 1e-6
@@ -295,15 +307,17 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
         bolt_offsets=jnp.asarray(bolts["offsets"], dtype),
         bolt_k=jnp.asarray(bolts["k"], dtype), bolt_cap=jnp.asarray(bolts["cap"], dtype),
         bolt_pullout=jnp.asarray(bolts["pullout"]),
+        cell_D=jnp.asarray(cell_D, dtype), bond_penalty=jnp.asarray(BOND_PENALTY, dtype),
         n_blocks=N, n_vertices=V, n_big=len(big), use_cells=use_cells,
-        cell_capacity=cell_capacity, dense=n_rock <= _DENSE_UP_TO,
-        n_bolts=len(bolts["k"]), has_water=water is not None,
+        cell_capacity=cell_capacity, linear_solver=_linear_solver(s.linear_solver, n_rock * D),
+        n_bolts=len(bolts["k"]), has_water=water is not None, ndof=D,
     )
     state = State(
         verts=jnp.asarray(verts, dtype), centroid=jnp.asarray(all_cents, dtype),
         u=jnp.zeros((N, 2), dtype), rot=jnp.zeros(N, dtype), alive=jnp.ones(N, bool),
         bolt_force=jnp.zeros(len(bolts["k"]), dtype),
         bolt_state=jnp.zeros(len(bolts["k"]), jnp.int32),
+        strain=jnp.zeros((N, 3), dtype), stress=jnp.zeros((N, 3), dtype),
         capacity=capacity, **empty_history(N, capacity, V, dtype),
     )
     excavation = [pc.excavation for pc in pieces]
@@ -314,7 +328,7 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
         segs = list(zip(outline, np.roll(outline, -1, axis=0), strict=True))
         keep = [i for i in range(n_rock) if excavation[i] != sp.excavation]
         load = _face_loads([polys[i] if i in keep else None for i in range(n_rock)], cents, N,
-                           segs, lambda n, q=sp.pressure: -q * n, tol_geo * 1e3)
+                           segs, lambda n, q=sp.pressure: -q * n, tol_geo * 1e3, D)
         supports.append(dict(stage=sp.stage, excavation=sp.excavation, force=load))
     layout = Layout(
         n_rock=n_rock, polygons=polys, centroids=cents,
@@ -328,13 +342,16 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
     return model, state, layout
 
 
-def _face_loads(polys, cents, n_blocks, segments, traction_of, tol):
-    """Loads (N, 3) of a traction on the block faces lying on the given segments.
+def _face_loads(polys, cents, n_blocks, segments, traction_of, tol, ndof=3):
+    """Loads (N, ndof) of a traction on the block faces lying on the given segments.
 
     ``traction_of(n)`` gives the traction (kPa, global x, y) on a face whose
-    outward normal is n; ``polys`` entries of None are skipped.
+    outward normal is n; ``polys`` entries of None are skipped. For deformable
+    blocks the last three columns are the work of the traction on the strains,
+    integral of (t_x x, t_y y, (t_x y + t_y x) / 2) over the face (x, y from
+    the centroid), exact for a uniform traction (the midpoint rule).
     """
-    out = np.zeros((n_blocks, 3))
+    out = np.zeros((n_blocks, ndof))
     for p0, p1 in segments:
         p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
         for i, p in enumerate(polys):
@@ -347,7 +364,9 @@ def _face_loads(polys, cents, n_blocks, segments, traction_of, tol):
                     n = -n
                 F = traction_of(n) * np.linalg.norm(d)
                 r = 0.5 * (a + b) - cents[i]
-                out[i] += [F[0], F[1], r[0] * F[1] - r[1] * F[0]]
+                out[i, :3] += [F[0], F[1], r[0] * F[1] - r[1] * F[0]]
+                if ndof == 6:
+                    out[i, 3:] += [F[0] * r[0], F[1] * r[1], 0.5 * (F[0] * r[1] + F[1] * r[0])]
     return out
 
 
@@ -374,6 +393,13 @@ def _bolts(scene, polys, cents, pieces, tol) -> dict:
         stages=[r["stage"] for r in rows],
         spacing=np.array([r["spacing"] for r in rows], float),
     )
+
+
+def _linear_solver(choice: str, unknowns: int) -> str:
+    """The linear solver: the scene's choice, or by size (dense Cholesky is fastest when small)."""
+    if choice != "auto":
+        return choice
+    return "dense" if unknowns <= _DENSE_UP_TO else "sparse"
 
 
 def _tol_floor(dtype) -> float:

@@ -37,7 +37,10 @@ class Result:
         ``{"convergence": c, "along": [a_from, a_to]}`` (m) for a section.
       blocks: one dict per block: ``id``, ``centroid`` [x, y] (m, initial),
         ``u`` [ux, uy, rot] (m, m, rad), ``stress`` [sxx, syy, sxy] (kPa,
-        compression positive), ``fixed``.
+        compression positive: a deformable cell's own stress, else the
+        average (1/A) sum r (x) F of its contact forces), ``fixed``; deformable
+        cells (``mesh_size``) also ``strain`` [exx, eyy, gxy] (extension
+        positive, from the same reference as ``u``).
       contacts: counts of contact springs in contact: ``total``, ``open``, ``slipping``.
       bolts: one dict per bolt (empty in explicit-block scenes).
       stages: per stage ``name``, ``converged``, ``stable``, ``iterations`` (Newton
@@ -134,8 +137,13 @@ def _rotate(v: np.ndarray, angle: np.ndarray) -> np.ndarray:
 
 
 def _positions(m, state) -> np.ndarray:
+    """Current positions of a monitor's material points: c + (I + E) R(rot) offset."""
     k = np.asarray(m["blocks"])
-    return np.asarray(state.centroid)[k] + _rotate(m["offsets"], np.asarray(state.rot)[k])
+    r = _rotate(m["offsets"], np.asarray(state.rot)[k])
+    e = np.asarray(state.strain)[k]
+    strained = np.stack([e[:, 0] * r[:, 0] + 0.5 * e[:, 2] * r[:, 1],
+                         0.5 * e[:, 2] * r[:, 0] + e[:, 1] * r[:, 1]], axis=1)
+    return np.asarray(state.centroid)[k] + r + strained
 
 
 def monitor_values(layout, state, ref=None) -> dict[str, dict[str, Any]]:
@@ -243,11 +251,18 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
     if ref is not None:
         u = u - np.asarray(ref.u)
         rot = rot - np.asarray(ref.rot)
-    stress = block_stress(nr, np.asarray(model.area), cen, snap)
+    strain = None
+    if model.ndof == 6:
+        # Deformable cells carry their own stress (tension positive in the solver).
+        stress = -np.asarray(state.stress)[:nr]
+        strain = np.asarray(state.strain)[:nr] - (np.asarray(ref.strain)[:nr] if ref is not None else 0.0)
+    else:
+        stress = block_stress(nr, np.asarray(model.area), cen, snap)
     fixed = ~np.asarray(model.free)[:nr]
     blocks = [
         {"id": i, "centroid": layout.centroids[i].tolist(), "u": [u[i, 0], u[i, 1], rot[i]],
          "stress": stress[i].tolist(), "fixed": bool(fixed[i]),
+         **({"strain": strain[i].tolist()} if strain is not None else {}),
          **({"excavated": True} if not alive[i] else {})}
         for i in range(nr)
     ]

@@ -25,8 +25,10 @@ are made by :func:`jaxdem.rockmass.generate`), or both. ``[in_situ]``, ``[[bolts
 
 Documented extensions and choices:
 
-- ``[solver] regularization`` (default 1e-6, in (0, 1)) and ``step_length``
-  (m, optional, > 0) are jaxdem extensions.
+- ``[solver] regularization`` (default 1e-6, in (0, 1)), ``step_length``
+  (m, optional, > 0) and ``linear_solver`` ("auto", "dense", "sparse" or "cg";
+  default "auto": dense Cholesky up to 1,800 unknowns, else sparse direct) are
+  jaxdem extensions.
 - ``[[discontinuities]] joint`` may be left out: the line then takes the scene's
   default joint.
 - ``set``/overrides may also set an optional numeric field that the file leaves out
@@ -217,11 +219,13 @@ class Monitor:
 @dataclass(frozen=True, eq=False)
 class Domain:
     """The rock mass to generate: ``outline`` (n, 2) m, simple and counter-clockwise (may be
-    non-convex), its ``material``, and optional ``mesh_size`` (m) for intact-rock cells."""
+    non-convex), its ``material``, optional ``mesh_size`` (m) for intact-rock cells and
+    ``mesh_max_size`` (m): cells grow from ``mesh_size`` at the excavations to this size."""
 
     outline: np.ndarray
     material: str
     mesh_size: float | None = None
+    mesh_max_size: float | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -322,6 +326,7 @@ class SolverSettings:
     dtype: str = "float64"
     regularization: float = 1e-6
     step_length: float | None = None
+    linear_solver: str = "auto"
 
 
 @dataclass(frozen=True, eq=False)
@@ -384,6 +389,7 @@ SOLVER_FIELDS = (
     "dtype",
     "regularization",
     "step_length",
+    "linear_solver",
 )
 MATERIAL_FIELDS = ("E", "nu", "unit_weight", "cohesion", "friction_deg", "tensile_strength")
 JOINT_FIELDS = (
@@ -402,7 +408,7 @@ BLOCK_FIELDS = ("vertices", "material", "fixed")
 DISCONTINUITY_FIELDS = ("from", "to", "joint")
 BOUNDARY_FIELDS = ("side", "from", "to", "condition", "traction")
 MONITOR_FIELDS = ("name", "point", "from", "to")
-DOMAIN_FIELDS = ("outline", "material", "mesh_size")
+DOMAIN_FIELDS = ("outline", "material", "mesh_size", "mesh_max_size")
 ZONE_FIELDS = ("name", "vertices", "material")
 EXCAVATION_FIELDS = ("name", "shape", "center", "radius", "width", "height", "vertices", "stage")
 SHAPES = ("circle", "horseshoe", "polygon")
@@ -421,6 +427,7 @@ STAGE_FIELDS = ("name", "load_steps", "water_table")
 SIDES = ("left", "right", "bottom", "top")
 CONDITIONS = ("fixed", "roller", "traction")
 DTYPES = ("float64", "float32")
+LINEAR_SOLVERS = ("auto", "dense", "sparse", "cg")
 
 # Scalar numeric fields that an override may add when the file leaves them out.
 _OPTIONAL_NUMERIC = {
@@ -429,7 +436,7 @@ _OPTIONAL_NUMERIC = {
     "materials": MATERIAL_FIELDS,
     "joints": ("kn", "ks", "cohesion", "friction_deg", "tensile_strength")
     + ("dip_deg", "spacing", "persistence", "gap"),
-    "domain": ("mesh_size",),
+    "domain": ("mesh_size", "mesh_max_size"),
     "in_situ": IN_SITU_FIELDS[1:],
     "water": ("unit_weight",),
     "bolts": ("spacing",),
@@ -600,6 +607,8 @@ def _parse_solver(data: dict) -> SolverSettings:
             hi_open=True,
         ),
         step_length=_field(t, "step_length", "solver", lo=0, lo_open=True),
+        linear_solver=(_string(t["linear_solver"], "solver.linear_solver", LINEAR_SOLVERS)
+                       if "linear_solver" in t else d.linear_solver),
     )
 
 
@@ -1028,7 +1037,14 @@ def _parse_domain(data: dict, materials: dict[str, Material]) -> Domain | None:
             raise SceneError(
                 "domain.mesh_size", f"larger than the domain ({mesh:g} m > {size:g} m)"
             )
-    return Domain(outline=outline, material=mat, mesh_size=mesh)
+    grown = _field(t, "mesh_max_size", "domain", lo=0, lo_open=True)
+    if grown is not None:
+        if mesh is None:
+            raise SceneError("domain.mesh_max_size", "needs domain.mesh_size (the smallest cells)")
+        if grown < mesh:
+            raise SceneError("domain.mesh_max_size",
+                             f"smaller than domain.mesh_size ({grown:g} m < {mesh:g} m)")
+    return Domain(outline=outline, material=mat, mesh_size=mesh, mesh_max_size=grown)
 
 
 def _check_blocks_outside_domain(blocks: tuple[Block, ...], domain: Domain | None) -> None:

@@ -75,18 +75,33 @@ def _cross(r, v):
     return r[..., 0] * v[..., 1] - r[..., 1] * v[..., 0]
 
 
-def b_rows(free, a, b, point_a, point_b, direction, centroid):
+def point_row(r, v, ndof=3):
+    """Row mapping a block's (u, theta[, eps_x, eps_y, gamma_xy]) to v . displacement of point r.
+
+    The displacement of a point at r from the centroid is u + theta x r + E r,
+    E = [[eps_x, gamma/2], [gamma/2, eps_y]] for a deformable (constant-strain)
+    block. The same row maps a point force v to the block's generalised force.
+    """
+    cols = [v, _cross(r, v)[..., None]]
+    if ndof == 6:
+        cols.append(jnp.stack([v[..., 0] * r[..., 0], v[..., 1] * r[..., 1],
+                               0.5 * (v[..., 0] * r[..., 1] + v[..., 1] * r[..., 0])], -1))
+    return jnp.concatenate(cols, axis=-1)
+
+
+def b_rows(free, a, b, point_a, point_b, direction, centroid, ndof=3):
     """Rows of B mapping (du_a, du_b) to the relative displacement along ``direction``.
 
-    v . (u_a + theta_a x r_a) - v . (u_b + theta_b x r_b), r_a = point_a - c_a,
-    r_b = point_b - c_b (the same point for a contact, the two anchors for a
-    bolt). Parts of blocks without degrees of freedom are zeroed. Returns (M, 6).
+    v . disp_a(r_a) - v . disp_b(r_b), r_a = point_a - c_a, r_b = point_b - c_b
+    (the same point for a contact, the two anchors for a bolt), with
+    disp from :func:`point_row`. Parts of blocks without degrees of freedom are
+    zeroed. Returns (M, 2 ndof).
     """
     ra, rb = point_a - centroid[a], point_b - centroid[b]
     fa = free[a][:, None].astype(ra.dtype)
     fb = free[b][:, None].astype(ra.dtype)
-    pa = jnp.concatenate([direction, _cross(ra, direction)[:, None]], axis=1) * fa
-    pb = -jnp.concatenate([direction, _cross(rb, direction)[:, None]], axis=1) * fb
+    pa = point_row(ra, direction, ndof) * fa
+    pb = -point_row(rb, direction, ndof) * fb
     return jnp.concatenate([pa, pb], axis=1)
 
 
@@ -94,10 +109,27 @@ def _gather(du, a, b):
     return jnp.concatenate([du[a], du[b]], axis=1)
 
 
-def _scatter(n_blocks, a, b, x6):
-    """Sum (M, 6) row vectors into (N, 3) block vectors."""
-    return (jax.ops.segment_sum(x6[:, :3], a, n_blocks)
-            + jax.ops.segment_sum(x6[:, 3:], b, n_blocks))
+def _scatter(n_blocks, a, b, x):
+    """Sum (M, 2 D) row vectors into (N, D) block vectors."""
+    d = x.shape[1] // 2
+    return (jax.ops.segment_sum(x[:, :d], a, n_blocks)
+            + jax.ops.segment_sum(x[:, d:], b, n_blocks))
+
+
+def _cell_stiffness(model: Model, free):
+    """(N, 6, 6) block-diagonal stiffness of deformable blocks: A D on the strains."""
+    K = jnp.zeros((model.n_blocks, 6, 6), model.area.dtype)
+    kc = (model.area * free)[:, None, None] * model.cell_D
+    return K.at[:, 3:, 3:].set(kc)
+
+
+def _rotate_tensor(v, angle):
+    """(x, y, xy) components of a symmetric tensor rotated by ``angle`` (tensor shear)."""
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    xx, yy, xy = v[..., 0], v[..., 1], v[..., 2]
+    return jnp.stack([c * c * xx + s * s * yy - 2 * c * s * xy,
+                      s * s * xx + c * c * yy + 2 * c * s * xy,
+                      c * s * (xx - yy) + (c * c - s * s) * xy], -1)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -107,9 +139,11 @@ class _Sub:
     Contacts: ``geo``, ``prop``, rows ``Bn``, ``Bs`` (S, 6), committed shear
     force ``fs_old``, initial normal force ``fn0``, ``failed``, water force
     ``pw`` (S,) (pore pressure x share, on joint slots). Bolts (when the
-    scene has them): ``bolt`` dict with ``a``, ``b``, ``B`` (nb, 6), ``f_old``,
-    ``active``. ``load``: (N, 3) external load. ``free``: (N,) blocks with
-    degrees of freedom (not fixed, not excavated).
+    scene has them): ``bolt`` dict with ``a``, ``b``, ``B`` (nb, 2 D), ``f_old``,
+    ``active``. ``load``: (N, D) external load. ``free``: (N,) blocks with
+    degrees of freedom (not fixed, not excavated). ``stress``: (N, 3)
+    committed stress of deformable blocks (tension positive); ``Kc``: their
+    (N, 6, 6) stiffness (None for rigid blocks).
     """
 
     geo: dict
@@ -123,6 +157,8 @@ class _Sub:
     bolt: dict | None
     load: jax.Array
     free: jax.Array
+    stress: jax.Array
+    Kc: jax.Array | None
 
 
 def _bolt_law(model: Model, sub: _Sub, du):
@@ -168,15 +204,20 @@ def _evaluate(model: Model, sub: _Sub, du, frozen, frozen_state, prev, band):
         internal = internal + _scatter(model.n_blocks, bolt["a"], bolt["b"],
                                        -bolt["B"] * bf[:, None])
         out.update(bolt_force=bf, bolt_state=bst)
+    if model.ndof == 6:
+        # Deformable blocks: the stress (committed + D d_eps) resists the strains.
+        dsig = jnp.einsum("nij,nj->ni", model.cell_D, du[:, 3:])
+        internal = internal.at[:, 3:].add(-model.area[:, None] * (sub.stress + dsig))
+        out["stress"] = sub.stress + dsig
     out["internal"] = internal
     out["R"] = jnp.where(sub.free[:, None], sub.load + internal, 0.0)
     return out
 
 
 def _residual_norm(model: Model, free, R):
-    """max over blocks of max(|Rx|, |Ry|, |M| / radius) (kN/m)."""
+    """max over blocks of max(|Rx|, |Ry|, |M| / radius, |R_strain| / radius) (kN/m)."""
     r = jnp.maximum(jnp.abs(R[:, 0]), jnp.abs(R[:, 1]))
-    r = jnp.maximum(r, jnp.abs(R[:, 2]) / model.radius)
+    r = jnp.maximum(r, jnp.max(jnp.abs(R[:, 2:]), axis=1) / model.radius)
     return jnp.max(jnp.where(free, r, 0.0))
 
 
@@ -204,17 +245,76 @@ def _stiffness_terms(model: Model, sub: _Sub, ev, consistent):
 
 
 def _solve_dense(model: Model, sub: _Sub, terms, R):
-    """(K_t + eps M)^-1 R by Cholesky on the assembled (3N, 3N) matrix."""
-    N = model.n_blocks
+    """(K_t + eps M)^-1 R by Cholesky on the assembled (D N, D N) matrix."""
+    N, D = model.n_blocks, model.ndof
     a, b, B, k = terms
     Ke = k[:, None, None] * B[:, :, None] * B[:, None, :]
-    dofs = jnp.concatenate([3 * a[:, None] + jnp.arange(3), 3 * b[:, None] + jnp.arange(3)], axis=1)
-    K = jnp.zeros((3 * N, 3 * N), R.dtype).at[dofs[:, :, None], dofs[:, None, :]].add(Ke)
-    free3 = jnp.repeat(sub.free, 3)
-    diag = jnp.where(free3, model.pseudo_mass.reshape(-1), 1.0)
+    dofs = jnp.concatenate([D * a[:, None] + jnp.arange(D), D * b[:, None] + jnp.arange(D)],
+                           axis=1)
+    K = jnp.zeros((D * N, D * N), R.dtype).at[dofs[:, :, None], dofs[:, None, :]].add(Ke)
+    if sub.Kc is not None:
+        own = D * jnp.arange(N)[:, None] + jnp.arange(D)
+        K = K.at[own[:, :, None], own[:, None, :]].add(sub.Kc)
+    freeD = jnp.repeat(sub.free, D)
+    diag = jnp.where(freeD, model.pseudo_mass.reshape(-1), 1.0)
     K = K + jnp.diag(diag)
     c = jax.scipy.linalg.cho_factor(K)
-    return jax.scipy.linalg.cho_solve(c, R.reshape(-1)).reshape(N, 3)
+    return jax.scipy.linalg.cho_solve(c, R.reshape(-1)).reshape(N, D)
+
+
+def _host_sparse_solve(a, b, B, k, Kc, diag, rhs):
+    """Assemble K = sum_m k_m B_m B_m^T + blockdiag(Kc) + diag(diag) on the host and solve.
+
+    Only springs with k != 0 enter, so the padded slot list costs nothing.
+    The factorisation is SciPy's SuperLU (minimum-degree ordering of K + K^T).
+    CPU only: on a GPU the matrix would travel to the host (use "cg" there).
+    """
+    import scipy.sparse
+    import scipy.sparse.linalg
+
+    a, b, B, k, Kc, diag, rhs = (np.asarray(x) for x in (a, b, B, k, Kc, diag, rhs))
+    n = rhs.shape[-1]
+    D = B.shape[1] // 2
+    on = k != 0
+    a, b, B, k = a[on], b[on], B[on], k[on]
+    dofs = np.concatenate([D * a[:, None] + np.arange(D), D * b[:, None] + np.arange(D)], axis=1)
+    rows = [np.repeat(dofs, 2 * D, axis=1).ravel()]
+    cols = [np.tile(dofs, (1, 2 * D)).ravel()]
+    vals = [(k[:, None, None] * B[:, :, None] * B[:, None, :]).ravel()]
+    if Kc.size:
+        own = D * np.arange(n // D)[:, None] + np.arange(D)
+        rows.append(np.repeat(own, D, axis=1).ravel())
+        cols.append(np.tile(own, (1, D)).ravel())
+        vals.append(Kc.ravel())
+    rows.append(np.arange(n))
+    cols.append(np.arange(n))
+    vals.append(diag)
+    K = scipy.sparse.csc_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
+    # K is symmetric positive definite: symmetric ordering, no pivoting (ten
+    # times faster than SuperLU's default partial pivoting).
+    lu = scipy.sparse.linalg.splu(K, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                                  options=dict(SymmetricMode=True))
+    return lu.solve(rhs).astype(rhs.dtype)
+
+
+def _solve_sparse(model: Model, sub: _Sub, terms, R):
+    """(K_t + eps M)^-1 R by a sparse direct solve (SciPy's SuperLU through a host callback).
+
+    Fill-in of a 2D contact graph is mild, so cost and memory grow about
+    linearly with the number of blocks, and a direct solve does not slow down
+    near a mechanism as an iterative one does. The springs go to the host as
+    rank-one terms (12 numbers each, not their 144 matrix entries) and are
+    assembled there; vmap solves batch members one after another.
+    """
+    a, b, B, k = terms
+    D = model.ndof
+    Kc = sub.Kc if sub.Kc is not None else jnp.zeros((0, D, D), R.dtype)
+    diag = jnp.where(jnp.repeat(sub.free, D), model.pseudo_mass.reshape(-1), 1.0)
+    rhs = R.reshape(-1)
+    x = jax.pure_callback(_host_sparse_solve, jax.ShapeDtypeStruct(rhs.shape, rhs.dtype),
+                          a, b, B, k, Kc, diag, rhs, vmap_method="sequential")
+    return x.reshape(R.shape)
 
 
 def _solve_cg(model: Model, sub: _Sub, terms, R):
@@ -223,20 +323,24 @@ def _solve_cg(model: Model, sub: _Sub, terms, R):
     The product K x is a gather/scatter over the springs: cost and memory
     linear in the number of contacts.
     """
-    N = model.n_blocks
+    N, nd = model.n_blocks, model.ndof
     a, b, B, k = terms
     pm = jnp.where(sub.free[:, None], model.pseudo_mass, 1.0)
 
     def matvec(x):
         y = _scatter(N, a, b, B * (k * jnp.sum(B * _gather(x, a, b), 1))[:, None])
+        if sub.Kc is not None:
+            y = y + jnp.einsum("nij,nj->ni", sub.Kc, x)
         return jnp.where(sub.free[:, None], y, 0.0) + pm * x
 
     def block(part):
         Bp = B[:, part]
         return k[:, None, None] * Bp[:, :, None] * Bp[:, None, :]
 
-    D = (jax.ops.segment_sum(block(slice(0, 3)), a, N)
-         + jax.ops.segment_sum(block(slice(3, 6)), b, N))
+    D = (jax.ops.segment_sum(block(slice(0, nd)), a, N)
+         + jax.ops.segment_sum(block(slice(nd, 2 * nd)), b, N))
+    if sub.Kc is not None:
+        D = D + sub.Kc
     D = D + jax.vmap(jnp.diag)(pm)
     Dinv = jnp.linalg.inv(D)
 
@@ -251,8 +355,11 @@ def _solve_cg(model: Model, sub: _Sub, terms, R):
 
 
 def _travel(model: Model, du):
-    """Largest vertex displacement of each block for a rigid increment du (m), bounded above."""
-    return jnp.sqrt(du[:, 0] ** 2 + du[:, 1] ** 2) + jnp.abs(du[:, 2]) * model.radius
+    """Largest vertex displacement of each block for an increment du (m), bounded above."""
+    spin = jnp.abs(du[:, 2])
+    if model.ndof == 6:
+        spin = spin + jnp.sum(jnp.abs(du[:, 3:]), axis=1)
+    return jnp.sqrt(du[:, 0] ** 2 + du[:, 1] ** 2) + spin * model.radius
 
 
 def _newton(model: Model, sub: _Sub, st0):
@@ -263,7 +370,7 @@ def _newton(model: Model, sub: _Sub, st0):
     """
     S = st0.shape[0]
     N = model.n_blocks
-    solve = _solve_dense if model.dense else _solve_cg
+    solve = dict(dense=_solve_dense, sparse=_solve_sparse, cg=_solve_cg)[model.linear_solver]
     # Force scale of the convergence test: the largest block load, or the
     # largest carried spring force (an in-situ state has large contact forces
     # and no net load), whichever is larger.
@@ -315,7 +422,7 @@ def _newton(model: Model, sub: _Sub, st0):
                     it=it, done=done, converged=converged, clipped=clipped & ~converged,
                     finite=finite, rnorm=rnorm / tol * model.tol, rprev=rnorm, stall=stall)
 
-    init = dict(du=jnp.zeros((N, 3), sub.load.dtype), st=st0, flips=zeros_s,
+    init = dict(du=jnp.zeros((N, model.ndof), sub.load.dtype), st=st0, flips=zeros_s,
                 frozen=jnp.zeros(S, bool), frozen_state=zeros_s, it=jnp.array(0),
                 done=jnp.array(False), converged=jnp.array(False), clipped=jnp.array(False),
                 finite=jnp.array(True), rnorm=jnp.array(jnp.inf, sub.load.dtype),
@@ -330,14 +437,29 @@ def _rotate(r, angle):
     return jnp.stack([cos * r[..., 0] - sin * r[..., 1], sin * r[..., 0] + cos * r[..., 1]], -1)
 
 
-def _move(state: State, du):
-    """Exact rigid motion of every block by (ux, uy, theta) about its centroid."""
+def _move(state: State, du, stress=None):
+    """Move every block by du: exact rigid motion (ux, uy, theta) about its centroid.
+
+    A deformable block is first strained by (eps_x, eps_y, gamma_xy) about its
+    centroid (which stays its centroid); its strain and ``stress`` (the new
+    stress, tension positive) then turn with the block.
+    """
     th = du[:, 2]
     r = state.verts - state.centroid[:, None, :]
+    strain, new_stress = state.strain, state.stress
+    if du.shape[1] == 6:
+        e = du[:, 3:]
+        r = r + jnp.stack([e[:, None, 0] * r[..., 0] + 0.5 * e[:, None, 2] * r[..., 1],
+                           0.5 * e[:, None, 2] * r[..., 0] + e[:, None, 1] * r[..., 1]], -1)
+        tensor = lambda v: v * jnp.array([1.0, 1.0, 0.5], v.dtype)  # noqa: E731
+        engineering = lambda v: v * jnp.array([1.0, 1.0, 2.0], v.dtype)  # noqa: E731
+        strain = engineering(_rotate_tensor(tensor(state.strain + e), th))
+        new_stress = _rotate_tensor(stress, th)
     centroid = state.centroid + du[:, :2]
     verts = centroid[:, None, :] + _rotate(r, th[:, None])
     return dataclasses.replace(state, verts=verts, centroid=centroid,
-                               u=state.u + du[:, :2], rot=state.rot + th)
+                               u=state.u + du[:, :2], rot=state.rot + th, strain=strain,
+                               stress=new_stress)
 
 
 def water_force(model: Model, geo, prop, water_x, water_y, scale=1.0):
@@ -380,10 +502,11 @@ def _substep(model: Model, state: State, loads: Loads):
     # zero must not leave a block resting on its support without springs.
     st0 = jnp.where(same, flat(hist["cstate"]),
                     jnp.where(geo["gap"] <= model.touch_tol, STICK, OPEN)).astype(jnp.int32)
+    D = model.ndof
     Bn = b_rows(free, geo["a"], geo["b"], geo["point"], geo["point"], geo["normal"],
-                state.centroid)
+                state.centroid, D)
     Bs = b_rows(free, geo["a"], geo["b"], geo["point"], geo["point"], geo["tangent"],
-                state.centroid)
+                state.centroid, D)
     if model.has_water:
         pw = water_force(mdl, geo, prop, loads.water_x, loads.water_y, loads.water_scale)
     else:
@@ -394,15 +517,16 @@ def _substep(model: Model, state: State, loads: Loads):
         alive_b = state.alive[bg["a"]] & state.alive[bg["b"]] & loads.bolt_active
         bolt = dict(a=bg["a"], b=bg["b"], f_old=state.bolt_force, active=alive_b,
                     B=b_rows(free, bg["a"], bg["b"], bg["point_a"], bg["point_b"], bg["e"],
-                             state.centroid))
+                             state.centroid, D))
     sub = _Sub(geo=geo, prop=prop, Bn=Bn, Bs=Bs, fs_old=fs_old, fn0=fn0, failed=failed, pw=pw,
-               bolt=bolt, load=jnp.where(free[:, None], loads.force, 0.0), free=free)
+               bolt=bolt, load=jnp.where(free[:, None], loads.force, 0.0), free=free,
+               stress=state.stress, Kc=_cell_stiffness(model, free) if D == 6 else None)
     du, ev, c = _newton(mdl, sub, st0)
     st = ev["state"]
     active = geo["active"]
     opened = (st == OPEN) & ((prop["tension"] > 0) | (ev["gap"] > model.touch_tol))
     failed_new = failed | (active & ~prop["bonded"] & ((st == SLIP) | opened))
-    moved = _move(state, du)
+    moved = _move(state, du, ev.get("stress"))
     shape = state.fs.shape
     new_state = dataclasses.replace(
         moved, pairs=pairs, fs=ev["fs"].reshape(shape), fn=ev["fn"].reshape(shape),
@@ -420,13 +544,14 @@ def _substep(model: Model, state: State, loads: Loads):
     a, b = geo["a"], geo["b"]
     f_row = Bn * ev["total_n"][:, None] - Bs * ev["fs"][:, None]
     reaction = (jax.ops.segment_sum(jnp.where((~free[b])[:, None], f_row[:, :3], 0.0), a, N)
-                + jax.ops.segment_sum(jnp.where((~free[a])[:, None], f_row[:, 3:], 0.0), b, N))
+                + jax.ops.segment_sum(jnp.where((~free[a])[:, None], f_row[:, D:D + 3], 0.0),
+                                      b, N))
     if model.n_bolts:
         rows = -bolt["B"] * ev["bolt_force"][:, None]
         reaction = reaction + (
             jax.ops.segment_sum(jnp.where((~free[bolt["b"]])[:, None], rows[:, :3], 0.0),
                                 bolt["a"], N)
-            + jax.ops.segment_sum(jnp.where((~free[bolt["a"]])[:, None], rows[:, 3:], 0.0),
+            + jax.ops.segment_sum(jnp.where((~free[bolt["a"]])[:, None], rows[:, D:D + 3], 0.0),
                                   bolt["b"], N))
     balance = dict(
         applied=jnp.stack([sub.load[:, 0].sum(), sub.load[:, 1].sum(), moment(sub.load).sum()]),
@@ -563,15 +688,27 @@ def _preload(model: Model, state: State, loads: Loads, sigma, surface_y, gamma, 
     tx = sxx * n[:, 0] + sxy * n[:, 1]
     ty = sxy * n[:, 0] + syy * n[:, 1]
     touching = geo["active"] & (geo["gap"] <= model.touch_tol)
+    # Faces in contact carry the in-situ traction; a corner touching a face
+    # (a cell corner on a boundary wall, a hanging node) is a point of a
+    # tessellation and carries none, else the state would not be in equilibrium.
+    loaded = touching & ~geo["corner"]
     pw = water_force(model, geo, prop, loads.water_x, loads.water_y) if model.has_water else 0.0
-    fn0 = jnp.where(touching, (tx * n[:, 0] + ty * n[:, 1]) * geo["share"] - pw, 0.0)
-    fs = jnp.where(touching, -(tx * t[:, 0] + ty * t[:, 1]) * geo["share"], 0.0)
+    fn0 = jnp.where(loaded, (tx * n[:, 0] + ty * n[:, 1]) * geo["share"] - pw, 0.0)
+    fs = jnp.where(loaded, -(tx * t[:, 0] + ty * t[:, 1]) * geo["share"], 0.0)
     shape = state.fs.shape
+    stress = state.stress
+    if model.ndof == 6:
+        # Each deformable block starts with the stress its contact forces
+        # imply, (1/A) sum r (x) F: exactly in equilibrium with them.
+        every = jnp.ones(model.n_blocks, bool)
+        rows = lambda v: b_rows(every, geo["a"], geo["b"], p, p, v, state.centroid, 6)  # noqa: E731
+        f_row = rows(n) * (fn0 + pw)[:, None] - rows(t) * fs[:, None]
+        stress = _scatter(model.n_blocks, geo["a"], geo["b"], f_row)[:, 3:] / model.area[:, None]
     new = dataclasses.replace(
         state, pairs=pairs, fn0=fn0.reshape(shape), fn=fn0.reshape(shape), fs=fs.reshape(shape),
         failed=(geo["gap"] > model.touch_tol).reshape(shape), edge=geo["edge"].reshape(shape),
         cstate=jnp.where(touching, STICK, OPEN).astype(jnp.int32).reshape(shape),
-        present=geo["active"].reshape(shape))
+        present=geo["active"].reshape(shape), stress=stress)
     return new, (count > state.capacity) | cell_full
 
 
@@ -638,21 +775,23 @@ class _Driver:
         return self.status == Status.CONVERGED
 
 
-def _excavation_release(layout, state, snapshot, removed):
-    """Forces (N, 3) that the blocks being removed exert on the others (host, from the snapshot)."""
+def _excavation_release(model, state, snapshot, removed):
+    """Forces (N, D) that the blocks being removed exert on the others (from the snapshot)."""
     snap = {k: np.asarray(v) for k, v in snapshot.items()}
     cen = np.asarray(state.centroid)
-    out = np.zeros((cen.shape[0], 3))
+    out = np.zeros((cen.shape[0], model.ndof))
     act = snap["active"]
     a, b, p, n = snap["a"][act], snap["b"][act], snap["point"][act], snap["normal"][act]
     t = np.stack([-n[:, 1], n[:, 0]], axis=1)
     F = (snap["fn"][act] + snap["pw"][act])[:, None] * n - snap["fs"][act][:, None] * t
     for on, by, sign in ((a, b, 1.0), (b, a, -1.0)):
         sel = removed[by] & ~removed[on]
-        r = p[sel] - cen[on[sel]]
         f = sign * F[sel]
-        np.add.at(out, on[sel], np.stack([f[:, 0], f[:, 1], r[:, 0] * f[:, 1] - r[:, 1] * f[:, 0]],
-                                         axis=1))
+        # |f| times the row of its unit direction: the generalised force of f.
+        mag = np.linalg.norm(f, axis=1)
+        unit = f / np.maximum(mag, 1e-300)[:, None]
+        row = np.asarray(point_row(p[sel] - cen[on[sel]], unit, model.ndof))
+        np.add.at(out, on[sel], mag[:, None] * row)
     return out
 
 
@@ -696,8 +835,9 @@ def solve(scene, set: dict | None = None, progress=None):
     n_rock = layout.n_rock
     N = model.n_blocks
     in_situ = scene.in_situ
-    base = np.zeros((N, 3))
-    pending = np.zeros((N, 3))  # applied over the first stage (uniform in-situ mode)
+    D = model.ndof
+    base = np.zeros((N, D))
+    pending = np.zeros((N, D))  # applied over the first stage (uniform in-situ mode)
     if in_situ is None:
         n = layout.load_steps
         for k in range(1, n + 1):
@@ -735,8 +875,8 @@ def solve(scene, set: dict | None = None, progress=None):
             break
         removed = np.zeros(N, bool)
         removed[:n_rock] = [e is not None and e in stage["excavations"] for e in layout.excavation]
-        release = _excavation_release(layout, d.state, d.info["snapshot"], removed) \
-            if removed.any() and d.info is not None else np.zeros((N, 3))
+        release = _excavation_release(d.model, d.state, d.info["snapshot"], removed) \
+            if removed.any() and d.info is not None else np.zeros((N, D))
         if removed.any():
             alive = np.asarray(d.state.alive) & ~removed
             d.state = dataclasses.replace(d.state, alive=jnp.asarray(alive))
@@ -745,7 +885,7 @@ def solve(scene, set: dict | None = None, progress=None):
                 d.bolt_active[b] = True
         support = sum((sp["force"] for sp in layout.supports
                        if sp["stage"] == stage["name"] or (sp["stage"] is None and stage["first"])),
-                      np.zeros((N, 3)))
+                      np.zeros((N, D)))
         y_old, y_new = d.water_y, d.water_y
         if stage["water_table"] is not None:
             y_new = np.interp(d.water_x, *np.asarray(stage["water_table"], float).T)
@@ -755,7 +895,7 @@ def solve(scene, set: dict | None = None, progress=None):
             force = base + (1 - lam) * release + lam * (pending + support)
             if not d.step(stage["name"], k, n, d.loads(force, (1 - lam) * y_old + lam * y_new)):
                 break
-        base, pending = base + pending + support, np.zeros((N, 3))
+        base, pending = base + pending + support, np.zeros((N, D))
         d.water_y = y_new
     timing = dict(build_s=build_s, compile_s=d.compile_s, solve_s=d.solve_s)
     return build_result(scene, d.model, layout, d.state, d.ref, d.info, d.records, d.history,

@@ -43,10 +43,10 @@ def _pytree(data: list[str], meta: list[str]):
         "max_displacement", "span_tol", "cos_parallel", "corner_share", "max_iterations",
         "max_substeps",
         "joint_intact", "gamma_w", "bolt_blocks", "bolt_offsets", "bolt_k", "bolt_cap",
-        "bolt_pullout",
+        "bolt_pullout", "cell_D", "bond_penalty",
     ],
-    meta=["n_blocks", "n_vertices", "n_big", "use_cells", "cell_capacity", "dense", "n_bolts",
-          "has_water"],
+    meta=["n_blocks", "n_vertices", "n_big", "use_cells", "cell_capacity", "linear_solver",
+          "n_bolts", "has_water", "ndof"],
 )
 @dataclasses.dataclass(frozen=True)
 class Model:
@@ -60,14 +60,15 @@ class Model:
       kn_inv, ks_inv: (N,) 1/kPa, inverse intact stiffness 1/kn_i = (1 - nu^2)/E and
         1/ks_i = (1 + nu)/E (paper eqs. 3-4); 0 for rigid walls.
       area: (N,) m2. radius: (N,) m, largest centroid-to-vertex distance.
-      f_ext: (N, 3) external load at load factor 1 (kN/m, kN/m, kN m/m about
-        the centroid): self-weight and boundary tractions.
+      f_ext: (N, D) external load at load factor 1 (kN/m, kN/m, kN m/m about
+        the centroid, then for deformable blocks the work-conjugates of the
+        three strains, kN m/m): self-weight and boundary tractions.
       edge_joint: (N, V) int32, joint of the discontinuity each edge lies on, -1 if none.
       joint_kn, joint_ks: (J,) kPa/m. joint_c, joint_t: (J,) kPa.
       joint_tanphi: (J,) tan of the friction angle.
       big: (n_big,) int32, blocks paired with every block in the broad phase
         (walls and blocks much larger than the median); the rest go in cells.
-      pseudo_mass: (N, 3) diagonal regularisation eps * k_ref * (1, 1, r_g^2):
+      pseudo_mass: (N, D) diagonal regularisation eps * k_ref * (1, 1, r_g^2, ...):
         changes the path of the iteration, never a converged equilibrium.
       f_ref: scalar kN/m, force scale of the convergence test.
       tol: relative residual tolerance. step_length: m, largest travel of a
@@ -88,8 +89,16 @@ class Model:
       bolt_k: (B,) kN/m per m, axial stiffness / spacing.
       bolt_cap: (B,) kN/m, min(yield force, anchor capacity) / spacing.
       bolt_pullout: (B,) bool, the anchor capacity governs (pull-out, else yield).
+      cell_D: (N, 3, 3) kPa, plane-strain elasticity of each deformable block
+        (sigma = D (eps_x, eps_y, gamma_xy)); (0, 3, 3) when blocks are rigid.
+      bond_penalty: scalar, stiffness of an intact-rock bond between deformable
+        blocks as a multiple of the Hamajima-Kawai spring (eqs. 3-7).
       n_blocks, n_vertices, n_big, cell_capacity, n_bolts: static sizes.
-      use_cells: grid broad phase (else all pairs). dense: Cholesky (else CG).
+      ndof: degrees of freedom per block, D: 3 (rigid: ux, uy, rotation) or 6
+        (deformable, constant strain: also eps_x, eps_y, gamma_xy).
+      use_cells: grid broad phase (else all pairs).
+      linear_solver: "dense" (Cholesky), "sparse" (SciPy's sparse LU, on the
+        host) or "cg" (matrix-free conjugate gradients).
       has_water: the scene has a water table (else no pore-pressure code is compiled).
     """
 
@@ -128,19 +137,22 @@ class Model:
     bolt_k: jax.Array
     bolt_cap: jax.Array
     bolt_pullout: jax.Array
+    cell_D: jax.Array
+    bond_penalty: jax.Array
     n_blocks: int
     n_vertices: int
     n_big: int
     use_cells: bool
     cell_capacity: int
-    dense: bool
+    linear_solver: str
     n_bolts: int = 0
     has_water: bool = False
+    ndof: int = 3
 
 
 @_pytree(
     data=["verts", "centroid", "u", "rot", "alive", "pairs", "fs", "fn", "fn0", "failed", "edge",
-          "cstate", "present", "bolt_force", "bolt_state"],
+          "cstate", "present", "bolt_force", "bolt_state", "strain", "stress"],
     meta=["capacity"],
 )
 @dataclasses.dataclass(frozen=True)
@@ -163,6 +175,10 @@ class State:
       present: (P, 2, V) bool, the slot was within the detection margin.
       bolt_force: (B,) kN/m, axial bolt force (tension positive).
       bolt_state: (B,) int32, 0 elastic, 1 yielded, 2 pulled out.
+      strain: (N, 3) strain of deformable blocks since the start (eps_x, eps_y,
+        gamma_xy; extension positive); zero for rigid blocks.
+      stress: (N, 3) kPa, stress of deformable blocks (sigma_x, sigma_y, tau_xy;
+        tension positive inside the solver): in-situ stress + D strain.
       capacity: P, static.
     """
 
@@ -181,6 +197,8 @@ class State:
     present: jax.Array
     bolt_force: jax.Array
     bolt_state: jax.Array
+    strain: jax.Array
+    stress: jax.Array
     capacity: int
 
 
@@ -214,8 +232,8 @@ class Loads:
     """What the host applies in one increment.
 
     Attributes:
-      force: (N, 3) external load on each block (kN/m, kN/m, kN m/m about its
-        centroid): self-weight, tractions, support pressure, and the part of
+      force: (N, D) external load on each block (kN/m, kN/m, kN m/m about its
+        centroid; then the strain work-conjugates of deformable blocks): self-weight, tractions, support pressure, and the part of
         the excavated blocks' forces not yet released.
       water_x, water_y: (W,) water table polyline (m); unused without water.
       water_scale: scalar, fraction of the pore pressure applied (ramped with

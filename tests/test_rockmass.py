@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from jaxdem import geometry
-from jaxdem.rockmass import RockMass, generate
+from jaxdem.rockmass import RockMass, _graded_squares, generate
 from jaxdem.scene import SceneError, parse_scene
 
 ROCK = {"E": 1.0e7, "nu": 0.25, "unit_weight": 25.0}
@@ -196,13 +196,52 @@ def test_l_shaped_domain_is_split_into_convex_pieces():
     assert counts == {("outer", None): 6, ("intact", None): 2}
 
 
-def test_mesh_without_joints_gives_square_cells():
+def test_mesh_without_joints_gives_squares_split_into_triangles():
     rm = generate(rock_scene(outline=square(4.0), mesh_size=0.5))
-    assert len(rm.pieces) == 64
+    assert len(rm.pieces) == 128
+    assert all(len(v) == 3 for v in rm.polygons())
     assert_valid(rm, 16.0)
+    # Diagonals alternate from square to square (no preferred direction).
+    slopes = Counter(_hyp_slope(v) for v in rm.polygons())
+    assert slopes[1.0] == slopes[-1.0] == 64
     for a, b, (kind, _) in edges(rm):
         on_outline = (a[0] == b[0] and a[0] in (0.0, 4.0)) or (a[1] == b[1] and a[1] in (0.0, 4.0))
         assert kind == ("outer" if on_outline else "intact")
+
+
+def _hyp_slope(tri):
+    """Slope sign of a right triangle's hypotenuse (its longest edge)."""
+    e = np.roll(tri, -1, axis=0) - tri
+    k = int(np.argmax(np.hypot(e[:, 0], e[:, 1])))
+    return float(np.sign(e[k, 0] * e[k, 1]))
+
+
+def test_graded_mesh_is_fine_at_the_opening_and_coarse_far_away():
+    scene = rock_scene(outline=square(16.0), mesh_size=0.25,
+                       excavations=[{"name": "hole", "shape": "circle", "center": [8.0, 8.0],
+                                     "radius": 1.0}])
+    data = scene.data
+    data["domain"]["mesh_max_size"] = 2.0
+    rm = generate(parse_scene(data))
+    assert_valid(rm, 256.0)
+    rock = [v for v, pc in zip(rm.polygons(), rm.pieces, strict=True) if pc.excavation is None]
+    assert all(len(v) == 3 for v in rock)
+    size = lambda v: float(np.sqrt(2.0 * geometry.signed_area(v)))  # noqa: E731
+    dist = lambda v: float(np.linalg.norm(geometry.centroid(v) - 8.0)) - 1.0  # noqa: E731
+    near = [size(v) for v in rock if dist(v) < 0.3]
+    far = [size(v) for v in rock if dist(v) > 6.0]
+    assert max(near) <= 0.25 * 1.01
+    assert np.median(far) > 4 * np.median(near)
+    # The quadtree behind it: 0.25 m squares at the opening, 2 m ones (the
+    # largest power-of-two multiple of 0.25 up to mesh_max_size) far from it, and
+    # no square larger than h + GROWTH * (its distance to the opening).
+    sq = _graded_squares((0.0, 0.0, 16.0, 16.0), 0.25, 2.0, [scene.excavations[0].vertices])
+    assert np.sum(sq[:, 2] ** 2) == pytest.approx(256.0)
+    centre = sq[:, :2] + 0.5 * sq[:, 2:3]
+    gap = np.maximum(np.linalg.norm(centre - 8.0, axis=1) - 1.0 - sq[:, 2] / math.sqrt(2), 0)
+    assert set(np.round(sq[:, 2], 9)) == {0.25, 0.5, 1.0, 2.0}
+    assert np.all(sq[:, 2] <= 0.25 + 0.25 * gap + 1e-6)
+    assert np.all(sq[gap < 0.01, 2] == 0.25)
 
 
 def test_mesh_conforms_to_joints_and_merges_slivers():
@@ -216,7 +255,7 @@ def test_mesh_conforms_to_joints_and_merges_slivers():
         e = np.roll(v, -1, axis=0) - v
         emax = float(np.max(np.hypot(e[:, 0], e[:, 1])))
         assert geometry.signed_area(v) >= 1e-3 * emax**2
-    assert 60 <= len(rm.pieces) <= 72
+    assert 120 <= len(rm.pieces) <= 150
     joint_length = sum(float(np.hypot(*(b - a))) for a, b, (k, _) in edges(rm) if k == "joint")
     # Traces at y = 1.0001, 2.0001, 3.0001 (both sides); the one at y = 0.0001 left a
     # sliver against the outline, merged across it.

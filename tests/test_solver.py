@@ -153,7 +153,7 @@ def test_dense_and_iterative_solvers_agree():
     model, state, _ = model_mod.build(scene)
     loads = solver.make_loads(model, model.f_ext)
     _, s_dense, _, _ = solver.run_increment(model, state, loads)
-    model_cg = dataclasses.replace(model, dense=False)
+    model_cg = dataclasses.replace(model, linear_solver="cg")
     _, s_cg, info, _ = solver.run_increment(model_cg, state, loads)
     assert int(info["status"]) == solver.Status.CONVERGED
     np.testing.assert_allclose(np.asarray(s_cg.u), np.asarray(s_dense.u), rtol=1e-7, atol=1e-14)
