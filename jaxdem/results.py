@@ -255,7 +255,9 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
     if model.ndof == 6:
         # Deformable cells carry their own stress (tension positive in the solver).
         stress = -np.asarray(state.stress)[:nr]
-        strain = np.asarray(state.strain)[:nr] - (np.asarray(ref.strain)[:nr] if ref is not None else 0.0)
+        strain = np.asarray(state.strain)[:nr]
+        if ref is not None:
+            strain = strain - np.asarray(ref.strain)[:nr]
     else:
         stress = block_stress(nr, np.asarray(model.area), cen, snap)
     fixed = ~np.asarray(model.free)[:nr]

@@ -233,8 +233,9 @@ class Loads:
 
     Attributes:
       force: (N, D) external load on each block (kN/m, kN/m, kN m/m about its
-        centroid; then the strain work-conjugates of deformable blocks): self-weight, tractions, support pressure, and the part of
-        the excavated blocks' forces not yet released.
+        centroid; then the strain work-conjugates of deformable blocks):
+        self-weight, tractions, support pressure, and the part of the
+        excavated blocks' forces not yet released.
       water_x, water_y: (W,) water table polyline (m); unused without water.
       water_scale: scalar, fraction of the pore pressure applied (ramped with
         self-weight while a scene without in-situ stress is loaded).
