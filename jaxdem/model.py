@@ -53,8 +53,9 @@ class Layout:
       load_steps: increments of the load.
       weight, traction: (N, 3) self-weight and boundary-traction loads.
       excavation: per rock block, the excavation it lies in (or None).
-      supports: per support, its ``stage``, ``excavation`` and ``force`` (N, 3)
-        at full pressure on the faces of the excavation outline.
+      supports: per support, its ``stage``, ``excavation`` and ``force`` (N, D)
+        at full pressure on the faces of the excavation outline; also the
+        tractions of boundaries that name a stage (``excavation`` None).
       bolt_stages, bolt_spacing: per bolt, its stage and out-of-plane spacing (m).
       materials: per rock block, its material name.
     """
@@ -228,7 +229,7 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
             cell_D[i] = plane_strain_elasticity(m.E, m.nu)
     traction = np.zeros((N, D))
     for bd in scene.boundaries:
-        if bd.condition == "traction":
+        if bd.condition == "traction" and bd.stage is None:
             traction += _face_loads(polys, cents, N, [(bd.start, bd.end)],
                                     lambda n, tr=bd.traction: np.asarray(tr, float),
                                     tol_geo * 1e3, D)
@@ -330,6 +331,11 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
         load = _face_loads([polys[i] if i in keep else None for i in range(n_rock)], cents, N,
                            segs, lambda n, q=sp.pressure: -q * n, tol_geo * 1e3, D)
         supports.append(dict(stage=sp.stage, excavation=sp.excavation, force=load))
+    for bd in scene.boundaries:
+        if bd.condition == "traction" and bd.stage is not None:
+            load = _face_loads(polys, cents, N, [(bd.start, bd.end)],
+                               lambda n, tr=bd.traction: np.asarray(tr, float), tol_geo * 1e3, D)
+            supports.append(dict(stage=bd.stage, excavation=None, force=load))
     layout = Layout(
         n_rock=n_rock, polygons=polys, centroids=cents,
         walls=wall_segments,

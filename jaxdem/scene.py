@@ -25,6 +25,9 @@ are made by :func:`jaxdem.rockmass.generate`), or both. ``[in_situ]``, ``[[bolts
 
 Documented extensions and choices:
 
+- ``[[boundaries]] stage`` (traction boundaries only): the stage that applies
+  the traction, ramped over its load steps and kept afterwards (a surcharge
+  placed after excavation); without it the traction is an initial load.
 - ``[solver] regularization`` (default 1e-6, in (0, 1)), ``step_length``
   (m, optional, > 0) and ``linear_solver`` ("auto", "dense", "sparse" or "cg";
   default "auto": dense Cholesky up to 1,800 unknowns, else sparse direct) are
@@ -196,13 +199,15 @@ class Discontinuity:
 @dataclass(frozen=True, eq=False)
 class Boundary:
     """A boundary condition on segment start-end (m); traction (tx, ty) in kPa, zeros unless
-    condition == "traction". ``side`` is "left"|"right"|"bottom"|"top" or None for from/to."""
+    condition == "traction". ``side`` is "left"|"right"|"bottom"|"top" or None for from/to.
+    ``stage``: a traction that a stage applies (None: part of the initial loads)."""
 
     condition: str
     start: np.ndarray
     end: np.ndarray
     side: str | None
     traction: np.ndarray
+    stage: str | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -406,7 +411,7 @@ JOINT_FIELDS = (
 )
 BLOCK_FIELDS = ("vertices", "material", "fixed")
 DISCONTINUITY_FIELDS = ("from", "to", "joint")
-BOUNDARY_FIELDS = ("side", "from", "to", "condition", "traction")
+BOUNDARY_FIELDS = ("side", "from", "to", "condition", "traction", "stage")
 MONITOR_FIELDS = ("name", "point", "from", "to")
 DOMAIN_FIELDS = ("outline", "material", "mesh_size", "mesh_max_size")
 ZONE_FIELDS = ("name", "vertices", "material")
@@ -831,7 +836,8 @@ def _side_segment(side: str, box: tuple) -> tuple[np.ndarray, np.ndarray]:
     return a, b
 
 
-def _parse_boundaries(data: dict, box: tuple, tol: float) -> tuple[Boundary, ...]:
+def _parse_boundaries(data: dict, box: tuple, tol: float,
+                      stages: tuple = ()) -> tuple[Boundary, ...]:
     out = []
     for i, raw in enumerate(_array_of_tables(data, "boundaries")):
         p = f"boundaries.{i}"
@@ -874,8 +880,12 @@ def _parse_boundaries(data: dict, box: tuple, tol: float) -> tuple[Boundary, ...
                     f"{p}.traction", f"only allowed with condition 'traction' (got {cond!r})"
                 )
             traction = np.zeros(2)
+        if "stage" in t and cond != "traction":
+            raise SceneError(f"{p}.stage", f"only allowed with condition 'traction' (got {cond!r})")
+        stage = _stage_ref(t, p, stages)
         traction.setflags(write=False)
-        out.append(Boundary(condition=cond, start=a, end=b, side=side, traction=traction))
+        out.append(Boundary(condition=cond, start=a, end=b, side=side, traction=traction,
+                            stage=stage))
     return tuple(out)
 
 
@@ -1373,7 +1383,7 @@ def _parse(data: Any, source: str) -> Scene:
     stages = _parse_stages(data)
     excavations = _parse_excavations(data, domain, joints, stages, box, tol)
     discontinuities = _parse_discontinuities(data, joints, default_joint, box, tol)
-    boundaries = _parse_boundaries(data, box, tol)
+    boundaries = _parse_boundaries(data, box, tol, stages)
     in_situ = _parse_in_situ(data, top=box[3])
     water = _parse_water(data)
     rock = _Rock(blocks, domain, excavations, tol)

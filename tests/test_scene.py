@@ -346,6 +346,8 @@ REFUSALS = [
     ("dtype", setting("solver", {"dtype": "float16"}), "solver.dtype", "float64, float32"),
     ("linear solver", setting("solver", {"linear_solver": "lu"}), "solver.linear_solver",
      "auto, dense, sparse, cg"),
+    ("boundary stage on wall", setting("boundaries.0.stage", "dig"), "boundaries.0.stage",
+     "only allowed with condition 'traction'"),
     ("spacing 0", setting("joints.j.spacing", 0.0), "joints.j.spacing", "> 0"),
     ("persistence 0", setting("joints.j.persistence", 0.0), "joints.j.persistence", "(0, 1]"),
     ("persistence >1", setting("joints.j.persistence", 1.5), "joints.j.persistence", "(0, 1]"),

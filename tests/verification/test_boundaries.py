@@ -99,3 +99,18 @@ def test_confined_column_between_roller_walls():
     # The roller walls carry no shear: the base wall carries all the weight.
     assert r.equilibrium["reaction"][1] == pytest.approx(25.0 * rows * cols, rel=1e-8)
     assert np.isfinite([b["stress"] for b in r.blocks]).all()
+
+
+def test_a_stage_applies_its_traction_and_displacements_count_from_before_it():
+    # The block settles under its weight while loading; the stage "surcharge"
+    # then adds q on the top face: the reported settlement is q L / (k L) only.
+    q = 100.0
+    d = _block_on_wall(traction=[0.0, -q])
+    d["boundaries"][-1]["stage"] = "surcharge"
+    d["stages"] = [{"name": "surcharge", "load_steps": 2}]
+    r = jaxdem.solve(parse_scene(d))
+    assert r.converged
+    kn_i, _ = intact_stiffness(1e7, 0.25)
+    assert -r.monitors["c"]["displacement"][1] == pytest.approx(q / (kn_i / 0.5), rel=1e-3)
+    assert r.equilibrium["applied"][1] == pytest.approx(-(25.0 + q) * 2.0, rel=1e-12)
+    assert [s["name"] for s in r.stages] == ["loading", "surcharge"]
