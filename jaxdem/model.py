@@ -10,6 +10,10 @@ Choices made here (documented for users in the README):
   no opening) and have no joint term: k = kn_i / h of the rock block alone.
 - A traction boundary applies ``traction`` (kPa, global x and y components)
   to the block faces lying on its segment, as a dead load.
+- A scene with ``domain.mesh_size`` has deformable blocks (6 unknowns each: the
+  rigid motion and a constant strain, with the material's plane-strain D); joints
+  between them are their own springs and intact bonds and walls penalty springs
+  (``BOND_PENALTY`` times eqs. 3-7). Other scenes have rigid blocks (3 unknowns).
 - Scales: L = median size sqrt(area) of the free blocks. Detection margin 2 * step_length;
   step_length defaults to L / 20; touch tolerance 1e-6 L (1e-4 L in float32);
   max_displacement defaults to L (a block that moves its own size in one
