@@ -92,3 +92,16 @@ def test_circular_opening_converges_to_kirsch():
         errors.append(abs(conv / closed - 1.0))
     assert errors[1] < errors[0]
     assert errors[1] < 0.05
+
+
+def test_float32_patch_test_matches_float64():
+    r64 = jaxdem.solve(parse_scene(_patch()))
+    r32 = jaxdem.solve(parse_scene(_patch({"dtype": "float32"})))
+    assert r32.converged
+    a = np.array(r64.monitors["corner"]["displacement"])
+    b = np.array(r32.monitors["corner"]["displacement"])
+    # float32 holds the vertex coordinates (up to 4 m here) to eps32 * 4 m = 4.8e-7 m,
+    # 1.3e-3 of the 0.38 mm displacement: the answer can be no closer than a few of
+    # those units (measured: 0.85 of one).
+    ulp = np.finfo(np.float32).eps * 4.0
+    assert np.abs(a - b).max() <= 4 * ulp
