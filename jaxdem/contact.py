@@ -212,6 +212,12 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ey, cy, not_dup):
     lo = jnp.clip(jnp.minimum(s0, s1), 0.0, L_e)
     hi = jnp.clip(jnp.maximum(s0, s1), 0.0, L_e)
     overlap = hi - lo
+    # Gap at the far end of the overlap (linear along the faces): faces within
+    # 2 degrees of parallel can still be a sliver's width apart there.
+    d1 = jnp.sum((other - q) * n, axis=-1)
+    s_far = jnp.where(jnp.abs(lo - s0) > jnp.abs(hi - s0), lo, hi)
+    run = jnp.where(jnp.abs(s1 - s0) > 0, s1 - s0, 1.0)
+    far_gap = gap + (d1 - gap) * (s_far - s0) / run
     corner = model.corner_share * jnp.minimum(lx, l_in)
     parallel = po | pi
     # A corner bears on a face only inside its span: at the end of a face
@@ -225,7 +231,9 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ey, cy, not_dup):
     h_x = jnp.maximum(jnp.sum((cx[:, None, :] - q) * n, axis=-1), 0.0)
     h_y = jnp.maximum(jnp.sum((q - cy[:, None, :]) * n, axis=-1), 0.0)
     return dict(active=active, gap=gap, point=xv, normal=n, tangent=t, edge=e,
-                share=share, h_x=h_x, h_y=h_y, own_edge=own_edge)
+                share=share, h_x=h_x, h_y=h_y, own_edge=own_edge,
+                far_gap=jnp.where(parallel, far_gap, gap),
+                far_point=xv + jnp.where(parallel, s_far - s0, 0.0)[..., None] * t)
 
 
 def narrow_phase(model: Model, verts, centroid, pairs):
@@ -235,7 +243,9 @@ def narrow_phase(model: Model, verts, centroid, pairs):
     block), ``active``, ``gap``, ``point``, ``normal``, ``tangent``, ``edge``,
     ``share`` (effective length of the point, m), ``h_a``, ``h_b`` (distances of
     the centroids from the contact line, m, eqs. 6-7), ``joint`` (joint id),
-    ``corner`` (a corner-to-edge point, not part of an edge-to-edge contact).
+    ``corner`` (a corner-to-edge point, not part of an edge-to-edge contact),
+    ``far_gap`` (m, the gap at the other end of an edge-to-edge overlap) and
+    ``far_point`` (that end; the point itself for a corner).
     """
     N = model.n_blocks
     P = pairs.shape[0]

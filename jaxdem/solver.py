@@ -670,40 +670,50 @@ def _imbalance(balance) -> float:
 def _preload(model: Model, state: State, loads: Loads, sigma, surface_y, gamma, k0, mode: str):
     """Contacts at the start with the forces of the in-situ stress field (zero displacement).
 
-    Each touching spring gets the traction of the stress tensor (compression
-    positive) on its face: fn0 = n.sigma.n x share (minus the pore pressure:
-    springs carry effective force) and fs = -t.sigma.n x share. ``mode``
-    "gravity": sigma_yy = gamma (surface_y - y), sigma_xx = k0 sigma_yy;
-    "uniform": ``sigma`` = (sxx, syy, sxy).
+    Each touching spring gets its part of the traction of the stress tensor
+    (compression positive) on its face: the consistent (linear-element) nodal
+    force of the traction t along the overlap, share x (2 t(here) + t(far end)) / 3,
+    which gives the exact force and moment of a traction that varies linearly
+    along the face (the gravity field does). fn0 is its normal part (minus the
+    pore pressure: springs carry effective force) and fs minus its tangential
+    part. ``mode`` "gravity": sigma_yy = gamma (surface_y - y), sigma_xx = k0
+    sigma_yy; "uniform": ``sigma`` = (sxx, syy, sxy).
     """
     pairs, count, cell_full = broad_phase(model, state.verts, state.capacity, state.alive)
     geo = narrow_phase(model, state.verts, state.centroid, pairs)
     prop = slot_properties(model, geo)
     p, n, t = geo["point"], geo["normal"], geo["tangent"]
-    if mode == "gravity":
-        syy = gamma * jnp.maximum(surface_y - p[:, 1], 0.0)
-        sxx, sxy = k0 * syy, jnp.zeros_like(syy)
-    else:
-        sxx, syy, sxy = (jnp.broadcast_to(sigma[k], p[:, 0].shape) for k in range(3))
-    tx = sxx * n[:, 0] + sxy * n[:, 1]
-    ty = sxy * n[:, 0] + syy * n[:, 1]
+
+    def traction(x):
+        if mode == "gravity":
+            syy = gamma * jnp.maximum(surface_y - x[:, 1], 0.0)
+            sxx, sxy = k0 * syy, jnp.zeros_like(syy)
+        else:
+            sxx, syy, sxy = (jnp.broadcast_to(sigma[k], x[:, 0].shape) for k in range(3))
+        return sxx * n[:, 0] + sxy * n[:, 1], sxy * n[:, 0] + syy * n[:, 1]
+
+    (tx0, ty0), (tx1, ty1) = traction(p), traction(geo["far_point"])
+    tx, ty = (2.0 * tx0 + tx1) / 3.0, (2.0 * ty0 + ty1) / 3.0
     touching = geo["active"] & (geo["gap"] <= model.touch_tol)
     # Faces in contact carry the in-situ traction; a corner touching a face
     # (a cell corner on a boundary wall, a hanging node) is a point of a
-    # tessellation and carries none, else the state would not be in equilibrium.
-    loaded = touching & ~geo["corner"]
+    # tessellation and carries none, nor do nearly parallel faces that meet at
+    # one end only (a sliver between them), else the state would not be in
+    # equilibrium.
+    loaded = touching & ~geo["corner"] & (geo["far_gap"] <= model.touch_tol)
     pw = water_force(model, geo, prop, loads.water_x, loads.water_y) if model.has_water else 0.0
     fn0 = jnp.where(loaded, (tx * n[:, 0] + ty * n[:, 1]) * geo["share"] - pw, 0.0)
     fs = jnp.where(loaded, -(tx * t[:, 0] + ty * t[:, 1]) * geo["share"], 0.0)
     shape = state.fs.shape
     stress = state.stress
     if model.ndof == 6:
-        # Each deformable block starts with the stress its contact forces
-        # imply, (1/A) sum r (x) F: exactly in equilibrium with them.
+        # Each deformable block starts with the stress its contact forces and
+        # boundary tractions imply, (1/A) sum r (x) F: exactly in equilibrium.
         every = jnp.ones(model.n_blocks, bool)
         rows = lambda v: b_rows(every, geo["a"], geo["b"], p, p, v, state.centroid, 6)  # noqa: E731
         f_row = rows(n) * (fn0 + pw)[:, None] - rows(t) * fs[:, None]
-        stress = _scatter(model.n_blocks, geo["a"], geo["b"], f_row)[:, 3:] / model.area[:, None]
+        virial = _scatter(model.n_blocks, geo["a"], geo["b"], f_row)[:, 3:] + loads.force[:, 3:]
+        stress = virial / model.area[:, None]
     new = dataclasses.replace(
         state, pairs=pairs, fn0=fn0.reshape(shape), fn=fn0.reshape(shape), fs=fs.reshape(shape),
         failed=(geo["gap"] > model.touch_tol).reshape(shape), edge=geo["edge"].reshape(shape),
