@@ -27,7 +27,9 @@ import time
 P, A, E, NU, R, H_MAX = 1000.0, 1.0, 1e7, 0.25, 32.0, 4.0
 
 
-def scene(h: float, h_max: float | None = H_MAX, k0: float = 1.0) -> dict:
+def scene(h: float, h_max: float | None = H_MAX, k0: float = 1.0, half_width: float = R) -> dict:
+    """The Kirsch scene: mesh size h (m) at the opening, K = k0, a square of 2 half_width."""
+    R = half_width  # noqa: N806
     return {
         "scene": {"name": f"Kirsch, mesh {h} m"},
         "solver": {"load_steps": 1},

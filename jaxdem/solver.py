@@ -136,7 +136,7 @@ def _rotate_tensor(v, angle):
 class _Sub:
     """Everything fixed during one geometry sub-step (not a pytree: lives inside jit).
 
-    Contacts: ``geo``, ``prop``, rows ``Bn``, ``Bs`` (S, 6), committed shear
+    Contacts: ``geo``, ``prop``, rows ``Bn``, ``Bs`` (S, 2 D), committed shear
     force ``fs_old``, initial normal force ``fn0``, ``failed``, water force
     ``pw`` (S,) (pore pressure x share, on joint slots). Bolts (when the
     scene has them): ``bolt`` dict with ``a``, ``b``, ``B`` (nb, 2 D), ``f_old``,

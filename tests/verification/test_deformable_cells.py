@@ -10,11 +10,17 @@ Closed forms:
   walls at 16 a make the answer about 1% smaller (Lame, thick cylinder).
 """
 
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 import jaxdem
 from jaxdem.scene import parse_scene
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+from bench_kirsch import scene as kirsch_scene  # noqa: E402  (the benchmark's scene)
 
 E, NU, P = 1e7, 0.25, 1000.0
 
@@ -60,28 +66,11 @@ def test_linear_solvers_agree_with_dense_cholesky(solver):
     assert np.abs(a - b).max() <= 1e-7 * np.abs(a).max()
 
 
-def _kirsch(h, R=16.0):
-    return {
-        "scene": {"name": f"Kirsch, mesh {h} m"},
-        "solver": {"load_steps": 1},
-        "materials": {"rock": {"E": E, "nu": NU, "unit_weight": 0.0, "cohesion": 1e5,
-                               "tensile_strength": 1e5, "friction_deg": 45.0}},
-        "domain": {"outline": [[-R, -R], [R, -R], [R, R], [-R, R]], "material": "rock",
-                   "mesh_size": h, "mesh_max_size": 4.0},
-        "excavations": [{"name": "hole", "shape": "circle", "center": [0.0, 0.0], "radius": 1.0}],
-        "in_situ": {"mode": "uniform", "sigma_xx": P, "sigma_yy": P, "sigma_xy": 0.0},
-        "boundaries": [{"side": s, "condition": "roller"}
-                       for s in ("left", "right", "top", "bottom")],
-        "monitors": [{"name": "h", "from": [-1.0, 0.0], "to": [1.0, 0.0]},
-                     {"name": "v", "from": [0.0, -1.0], "to": [0.0, 1.0]}],
-    }
-
-
 def test_circular_opening_converges_to_kirsch():
     closed = 2 * P * 1.0 * (1 + NU) / E
     errors = []
     for h in (1.0, 0.5):
-        r = jaxdem.solve(parse_scene(_kirsch(h)))
+        r = jaxdem.solve(parse_scene(kirsch_scene(h, half_width=16.0)))
         assert r.converged
         d = r.to_dict()
         initial = d["stages"][0]
