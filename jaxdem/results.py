@@ -138,11 +138,11 @@ def _rotate(v: np.ndarray, angle: np.ndarray) -> np.ndarray:
 
 def _positions(m, state) -> np.ndarray:
     """Current positions of a monitor's material points: c + (I + E) R(rot) offset."""
+    from jaxdem.solver import strain_times
+
     k = np.asarray(m["blocks"])
     r = _rotate(m["offsets"], np.asarray(state.rot)[k])
-    e = np.asarray(state.strain)[k]
-    strained = np.stack([e[:, 0] * r[:, 0] + 0.5 * e[:, 2] * r[:, 1],
-                         0.5 * e[:, 2] * r[:, 0] + e[:, 1] * r[:, 1]], axis=1)
+    strained = np.asarray(strain_times(np.asarray(state.strain)[k], r))
     return np.asarray(state.centroid)[k] + r + strained
 
 

@@ -89,6 +89,12 @@ def point_row(r, v, ndof=3):
     return jnp.concatenate(cols, axis=-1)
 
 
+def strain_times(e, r):
+    """E r for strains e = (eps_x, eps_y, gamma_xy) (engineering shear), broadcasting."""
+    return jnp.stack([e[..., 0] * r[..., 0] + 0.5 * e[..., 2] * r[..., 1],
+                      0.5 * e[..., 2] * r[..., 0] + e[..., 1] * r[..., 1]], -1)
+
+
 def b_rows(free, a, b, point_a, point_b, direction, centroid, ndof=3):
     """Rows of B mapping (du_a, du_b) to the relative displacement along ``direction``.
 
@@ -449,8 +455,7 @@ def _move(state: State, du, stress=None):
     strain, new_stress = state.strain, state.stress
     if du.shape[1] == 6:
         e = du[:, 3:]
-        r = r + jnp.stack([e[:, None, 0] * r[..., 0] + 0.5 * e[:, None, 2] * r[..., 1],
-                           0.5 * e[:, None, 2] * r[..., 0] + e[:, None, 1] * r[..., 1]], -1)
+        r = r + strain_times(e[:, None, :], r)
         tensor = lambda v: v * jnp.array([1.0, 1.0, 0.5], v.dtype)  # noqa: E731
         engineering = lambda v: v * jnp.array([1.0, 1.0, 2.0], v.dtype)  # noqa: E731
         strain = engineering(_rotate_tensor(tensor(state.strain + e), th))
