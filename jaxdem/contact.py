@@ -49,7 +49,10 @@ def edges(verts: jax.Array, nv: jax.Array):
     nxt = jnp.where(k + 1 < nv[..., None], k + 1, 0)
     q1 = jnp.take_along_axis(verts, nxt[..., None], axis=-2)
     d = q1 - verts
-    length = jnp.sqrt(jnp.sum(d * d, axis=-1))
+    # Padded edges have zero length: take the root of a safe value there, so
+    # that derivatives stay finite (d sqrt(x) is infinite at x = 0).
+    d2 = jnp.sum(d * d, axis=-1)
+    length = jnp.where(d2 > 0, jnp.sqrt(jnp.where(d2 > 0, d2, 1.0)), 0.0)
     emask = k < nv[..., None]
     safe = jnp.where(emask & (length > 0), length, 1.0)
     t = d / safe[..., None]

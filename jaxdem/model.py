@@ -332,9 +332,11 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
         outline = np.asarray(exc.vertices, float)
         segs = list(zip(outline, np.roll(outline, -1, axis=0), strict=True))
         keep = [i for i in range(n_rock) if excavation[i] != sp.excavation]
-        load = _face_loads([polys[i] if i in keep else None for i in range(n_rock)], cents, N,
-                           segs, lambda n, q=sp.pressure: -q * n, tol_geo * 1e3, D)
-        supports.append(dict(stage=sp.stage, excavation=sp.excavation, force=load))
+        # The load of a unit pressure: the support's load is linear in its pressure.
+        unit = _face_loads([polys[i] if i in keep else None for i in range(n_rock)], cents, N,
+                           segs, lambda n: -n, tol_geo * 1e3, D)
+        supports.append(dict(stage=sp.stage, excavation=sp.excavation, force=sp.pressure * unit,
+                             unit=unit))
     for bd in scene.boundaries:
         if bd.condition == "traction" and bd.stage is not None:
             load = _face_loads(polys, cents, N, [(bd.start, bd.end)],

@@ -203,7 +203,8 @@ def _evaluate(model: Model, sub: _Sub, du, frozen, frozen_state, prev, band):
     total_n = fn + jnp.where(st != OPEN, sub.pw, 0.0) if model.has_water else fn
     internal = _scatter(model.n_blocks, geo["a"], geo["b"],
                         sub.Bn * total_n[:, None] - sub.Bs * fs[:, None])
-    out = dict(fn=fn, fs=fs, state=st, gap=gap, fn_trial=fn_trial, total_n=total_n)
+    out = dict(fn=fn, fs=fs, state=st, gap=gap, fn_trial=fn_trial, fs_trial=fs_trial,
+               total_n=total_n)
     if model.n_bolts:
         bf, bst = _bolt_law(model, sub, du)
         bolt = sub.bolt
@@ -250,43 +251,52 @@ def _stiffness_terms(model: Model, sub: _Sub, ev, consistent):
     return [jnp.concatenate(x) for x in zip(*terms, strict=True)]
 
 
-def _solve_dense(model: Model, sub: _Sub, terms, R):
-    """(K_t + eps M)^-1 R by Cholesky on the assembled (D N, D N) matrix."""
+def _assemble_dense(model: Model, sub: _Sub, a, b, L, Rt, k, diag):
+    """sum_m k_m L_m R_m^T + blockdiag(Kc) + diag(diag) as a dense (D N, D N) matrix.
+
+    L and Rt (M, 2 D) are the left and right rows of each term over the DOFs of
+    its blocks (a, b); L = Rt for the symmetric iteration matrix.
+    """
     N, D = model.n_blocks, model.ndof
-    a, b, B, k = terms
-    Ke = k[:, None, None] * B[:, :, None] * B[:, None, :]
+    Ke = k[:, None, None] * L[:, :, None] * Rt[:, None, :]
     dofs = jnp.concatenate([D * a[:, None] + jnp.arange(D), D * b[:, None] + jnp.arange(D)],
                            axis=1)
-    K = jnp.zeros((D * N, D * N), R.dtype).at[dofs[:, :, None], dofs[:, None, :]].add(Ke)
+    K = jnp.zeros((D * N, D * N), diag.dtype).at[dofs[:, :, None], dofs[:, None, :]].add(Ke)
     if sub.Kc is not None:
         own = D * jnp.arange(N)[:, None] + jnp.arange(D)
         K = K.at[own[:, :, None], own[:, None, :]].add(sub.Kc)
-    freeD = jnp.repeat(sub.free, D)
-    diag = jnp.where(freeD, model.pseudo_mass.reshape(-1), 1.0)
-    K = K + jnp.diag(diag)
+    return K + jnp.diag(diag)
+
+
+def _solve_dense(model: Model, sub: _Sub, terms, R):
+    """(K_t + eps M)^-1 R by Cholesky on the assembled (D N, D N) matrix."""
+    a, b, B, k = terms
+    diag = jnp.where(jnp.repeat(sub.free, model.ndof), model.pseudo_mass.reshape(-1), 1.0)
+    K = _assemble_dense(model, sub, a, b, B, B, k, diag)
     c = jax.scipy.linalg.cho_factor(K)
-    return jax.scipy.linalg.cho_solve(c, R.reshape(-1)).reshape(N, D)
+    return jax.scipy.linalg.cho_solve(c, R.reshape(-1)).reshape(R.shape)
 
 
-def _host_sparse_solve(a, b, B, k, Kc, diag, rhs):
-    """Assemble K = sum_m k_m B_m B_m^T + blockdiag(Kc) + diag(diag) on the host and solve.
+def _host_sparse_solve(a, b, L, Rt, k, Kc, diag, rhs, symmetric=True):
+    """Assemble K = sum_m k_m L_m Rt_m^T + blockdiag(Kc) + diag(diag) on the host and solve.
 
-    Only springs with k != 0 enter, so the padded slot list costs nothing.
+    Only terms with k != 0 enter, so the padded slot list costs nothing.
     The factorisation is SciPy's SuperLU (minimum-degree ordering of K + K^T).
-    CPU only: on a GPU the matrix would travel to the host (use "cg" there).
+    ``rhs`` is (n,) or (n, p). CPU only: on a GPU the matrix would travel to
+    the host (use "cg" there).
     """
     import scipy.sparse
     import scipy.sparse.linalg
 
-    a, b, B, k, Kc, diag, rhs = (np.asarray(x) for x in (a, b, B, k, Kc, diag, rhs))
-    n = rhs.shape[-1]
-    D = B.shape[1] // 2
+    a, b, L, Rt, k, Kc, diag, rhs = (np.asarray(x) for x in (a, b, L, Rt, k, Kc, diag, rhs))
+    n = rhs.shape[0]
+    D = L.shape[1] // 2
     on = k != 0
-    a, b, B, k = a[on], b[on], B[on], k[on]
+    a, b, L, Rt, k = a[on], b[on], L[on], Rt[on], k[on]
     dofs = np.concatenate([D * a[:, None] + np.arange(D), D * b[:, None] + np.arange(D)], axis=1)
     rows = [np.repeat(dofs, 2 * D, axis=1).ravel()]
     cols = [np.tile(dofs, (1, 2 * D)).ravel()]
-    vals = [(k[:, None, None] * B[:, :, None] * B[:, None, :]).ravel()]
+    vals = [(k[:, None, None] * L[:, :, None] * Rt[:, None, :]).ravel()]
     if Kc.size:
         own = D * np.arange(n // D)[:, None] + np.arange(D)
         rows.append(np.repeat(own, D, axis=1).ravel())
@@ -297,10 +307,13 @@ def _host_sparse_solve(a, b, B, k, Kc, diag, rhs):
     vals.append(diag)
     K = scipy.sparse.csc_matrix(
         (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
-    # K is symmetric positive definite: symmetric ordering, no pivoting (ten
-    # times faster than SuperLU's default partial pivoting).
-    lu = scipy.sparse.linalg.splu(K, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                                  options=dict(SymmetricMode=True))
+    if symmetric:
+        # K is symmetric positive definite: symmetric ordering, no pivoting
+        # (ten times faster than SuperLU's default partial pivoting).
+        lu = scipy.sparse.linalg.splu(K, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                                      options=dict(SymmetricMode=True))
+    else:
+        lu = scipy.sparse.linalg.splu(K, permc_spec="MMD_AT_PLUS_A")
     return lu.solve(rhs).astype(rhs.dtype)
 
 
@@ -319,7 +332,7 @@ def _solve_sparse(model: Model, sub: _Sub, terms, R):
     diag = jnp.where(jnp.repeat(sub.free, D), model.pseudo_mass.reshape(-1), 1.0)
     rhs = R.reshape(-1)
     x = jax.pure_callback(_host_sparse_solve, jax.ShapeDtypeStruct(rhs.shape, rhs.dtype),
-                          a, b, B, k, Kc, diag, rhs, vmap_method="sequential")
+                          a, b, B, B, k, Kc, diag, rhs, vmap_method="sequential")
     return x.reshape(R.shape)
 
 
@@ -489,8 +502,13 @@ def bolt_geometry(model: Model, state: State):
     return dict(a=j, b=i, point_a=p2, point_b=p1, e=e)
 
 
-def _substep(model: Model, state: State, loads: Loads):
-    """Detect contacts, iterate to equilibrium at fixed geometry, commit the motion."""
+def _prepare(model: Model, state: State, loads: Loads):
+    """Detect contacts at the current geometry and carry their history: a sub-step's data.
+
+    Returns (mdl, sub, st0, pairs, need): the model with ``free`` restricted to
+    the blocks alive now, the :class:`_Sub`, the slots' starting states, the
+    pair list and what the contact list needed (``pairs``, ``cell_full``).
+    """
     N = model.n_blocks
     free = model.free & state.alive
     mdl = dataclasses.replace(model, free=free)
@@ -526,16 +544,26 @@ def _substep(model: Model, state: State, loads: Loads):
     sub = _Sub(geo=geo, prop=prop, Bn=Bn, Bs=Bs, fs_old=fs_old, fn0=fn0, failed=failed, pw=pw,
                bolt=bolt, load=jnp.where(free[:, None], loads.force, 0.0), free=free,
                stress=state.stress, Kc=_cell_stiffness(model, free) if D == 6 else None)
-    du, ev, c = _newton(mdl, sub, st0)
+    return mdl, sub, st0, pairs, dict(pairs=count, cell_full=cell_full)
+
+
+def _commit(model: Model, state: State, sub: _Sub, pairs, du, ev):
+    """Move the blocks by du and commit the springs' forces and states.
+
+    Returns (state, balance, snapshot): the new state, the global balance of
+    the free blocks and the contact snapshot (forces at the sub-step's points).
+    """
+    N, D = model.n_blocks, model.ndof
+    geo, free = sub.geo, sub.free
     st = ev["state"]
     active = geo["active"]
-    opened = (st == OPEN) & ((prop["tension"] > 0) | (ev["gap"] > model.touch_tol))
-    failed_new = failed | (active & ~prop["bonded"] & ((st == SLIP) | opened))
+    opened = (st == OPEN) & ((sub.prop["tension"] > 0) | (ev["gap"] > model.touch_tol))
+    failed_new = sub.failed | (active & ~sub.prop["bonded"] & ((st == SLIP) | opened))
     moved = _move(state, du, ev.get("stress"))
     shape = state.fs.shape
     new_state = dataclasses.replace(
         moved, pairs=pairs, fs=ev["fs"].reshape(shape), fn=ev["fn"].reshape(shape),
-        fn0=fn0.reshape(shape), failed=failed_new.reshape(shape),
+        fn0=sub.fn0.reshape(shape), failed=failed_new.reshape(shape),
         edge=geo["edge"].reshape(shape), cstate=st.reshape(shape),
         present=active.reshape(shape))
     if model.n_bolts:
@@ -547,11 +575,12 @@ def _substep(model: Model, state: State, loads: Loads):
     c_xy = state.centroid
     moment = lambda F: F[:, 2] + _cross(c_xy, F[:, :2])  # noqa: E731
     a, b = geo["a"], geo["b"]
-    f_row = Bn * ev["total_n"][:, None] - Bs * ev["fs"][:, None]
+    f_row = sub.Bn * ev["total_n"][:, None] - sub.Bs * ev["fs"][:, None]
     reaction = (jax.ops.segment_sum(jnp.where((~free[b])[:, None], f_row[:, :3], 0.0), a, N)
                 + jax.ops.segment_sum(jnp.where((~free[a])[:, None], f_row[:, D:D + 3], 0.0),
                                       b, N))
     if model.n_bolts:
+        bolt = sub.bolt
         rows = -bolt["B"] * ev["bolt_force"][:, None]
         reaction = reaction + (
             jax.ops.segment_sum(jnp.where((~free[bolt["b"]])[:, None], rows[:, :3], 0.0),
@@ -566,19 +595,19 @@ def _substep(model: Model, state: State, loads: Loads):
     )
     snapshot = dict(point=geo["point"], normal=geo["normal"], a=a, b=b, active=active,
                     fn=ev["fn"], fs=ev["fs"], pw=ev["total_n"] - ev["fn"], state=st)
-    need = dict(pairs=count, cell_full=cell_full)
+    return new_state, balance, snapshot
+
+
+def _substep(model: Model, state: State, loads: Loads):
+    """Detect contacts, iterate to equilibrium at fixed geometry, commit the motion."""
+    mdl, sub, st0, pairs, need = _prepare(model, state, loads)
+    du, ev, c = _newton(mdl, sub, st0)
+    new_state, balance, snapshot = _commit(mdl, state, sub, pairs, du, ev)
     return new_state, du, c, need, balance, snapshot
 
 
-@jax.jit
-def increment(model: Model, state: State, loads: Loads):
-    """One load increment: geometry sub-steps until equilibrium under ``loads``.
-
-    Returns (state, info): info holds ``status`` (a Status value), ``iterations``
-    (Newton iterations), ``substeps``, ``residual`` (relative), ``travel``
-    (N,) path length of each block in this increment (m), ``balance`` and the
-    final contact ``snapshot``.
-    """
+def _increment(model: Model, state: State, loads: Loads, tangents=None):
+    """Geometry sub-steps until equilibrium; with ``tangents``, their sensitivities too."""
     N = model.n_blocks
     dtype = state.verts.dtype
     _, _, _, _, balance0, snap0 = jax.eval_shape(_substep, model, state, loads)
@@ -603,21 +632,159 @@ def increment(model: Model, state: State, loads: Loads):
              Status.ITERATION_LIMIT],
             -1)
         keep = overflow | ~newton["finite"]
-        new = jax.tree.map(lambda o, n: jnp.where(keep, o, n), c["state"], st_new)
-        return dict(state=new, status=status, substeps=substeps, stuck=stuck,
-                    iterations=c["iterations"] + newton["it"], travel=travel,
-                    residual=newton["rnorm"], balance=balance, snapshot=snap,
-                    pairs_needed=jnp.maximum(c["pairs_needed"], need["pairs"]),
-                    cell_full=c["cell_full"] | need["cell_full"])
+        hold = lambda old, new: jax.tree.map(lambda o, n: jnp.where(keep, o, n), old, new)  # noqa: E731
+        out = dict(state=hold(c["state"], st_new), status=status, substeps=substeps, stuck=stuck,
+                   iterations=c["iterations"] + newton["it"], travel=travel,
+                   residual=newton["rnorm"], balance=balance, snapshot=snap,
+                   pairs_needed=jnp.maximum(c["pairs_needed"], need["pairs"]),
+                   cell_full=c["cell_full"] | need["cell_full"],
+                   approximate=c["approximate"] | ~newton["converged"])
+        if tangents is not None:
+            dstate, dsnap = _substep_tangent(model, c["state"], loads, st_new, du,
+                                             newton["converged"], tangents["model"],
+                                             c["dstate"], tangents["loads"])
+            out.update(dstate=hold(c["dstate"], dstate), dsnapshot=dsnap)
+        return out
 
     init = dict(state=state, status=jnp.array(-1), substeps=jnp.array(0), stuck=jnp.array(0),
                 iterations=jnp.array(0), travel=jnp.zeros(N, dtype),
                 residual=jnp.array(jnp.inf, dtype), balance=zeros_like(balance0),
-                snapshot=zeros_like(snap0), pairs_needed=jnp.array(0), cell_full=jnp.array(False))
+                snapshot=zeros_like(snap0), pairs_needed=jnp.array(0), cell_full=jnp.array(False),
+                approximate=jnp.array(False))
+    if tangents is not None:
+        init["dstate"] = tangents["state"]
+        p = jax.tree.leaves(tangents["state"])[0].shape[0]
+        init["dsnapshot"] = {k: jnp.zeros((p,) + snap0[k].shape, dtype) for k in SNAPSHOT_FLOATS}
     c = jax.lax.while_loop(cond, body, init)
     info = {k: c[k] for k in ("status", "substeps", "iterations", "travel", "residual",
-                              "balance", "snapshot", "pairs_needed", "cell_full")}
+                              "balance", "snapshot", "pairs_needed", "cell_full", "approximate")}
+    if tangents is not None:
+        info.update(dstate=c["dstate"], dsnapshot=c["dsnapshot"])
     return c["state"], info
+
+
+@jax.jit
+def increment(model: Model, state: State, loads: Loads):
+    """One load increment: geometry sub-steps until equilibrium under ``loads``.
+
+    Returns (state, info): info holds ``status`` (a Status value), ``iterations``
+    (Newton iterations), ``substeps``, ``residual`` (relative), ``travel``
+    (N,) path length of each block in this increment (m), ``balance``, the
+    final contact ``snapshot`` and ``approximate`` (a sub-step ended without
+    equilibrium, cut by the step length: see :func:`increment_tangent`).
+    """
+    return _increment(model, state, loads)
+
+
+@jax.jit
+def increment_tangent(model: Model, state: State, loads: Loads, tangents: dict):
+    """:func:`increment` with forward-mode sensitivities of the state to p parameters.
+
+    ``tangents`` holds ``model`` ({field: (p, ...)} for :data:`SMOOTH_MODEL`),
+    ``loads`` ({field: (p, ...)} for :data:`LOAD_FLOATS`) and ``state``
+    ({field: (p, ...)} for :data:`STATE_FLOATS`): the derivatives of those
+    inputs with respect to each parameter. ``info`` then also holds ``dstate``,
+    the derivatives of the new state, and ``dsnapshot``, those of the final
+    contact snapshot.
+
+    Each sub-step that ends in equilibrium, R(du*; geometry, history,
+    theta) = 0, is differentiated implicitly with its contact states held
+    (stick, slip, open and the bolts' states as found): du*' = K^-1 dR/dtheta,
+    with K = -dR/d(du) the exact tangent of the held states (unsymmetric where
+    slots slip). Geometry, detection and the committed history are chained
+    through exactly, so the result is the derivative of the discrete solution
+    wherever no state changes under a small change of theta. A sub-step cut
+    short by the step length (a large motion on the way to equilibrium) is
+    held fixed, and ``info["approximate"]`` says that one was.
+    """
+    return _increment(model, state, loads, tangents)
+
+
+# Model fields that scene parameters change smoothly (see jaxdem.differentiable).
+SMOOTH_MODEL = ("joint_kn", "joint_ks", "joint_c", "joint_t", "joint_tanphi", "kn_inv", "ks_inv",
+                "cell_D", "bolt_k", "bolt_cap", "gamma_w")
+STATE_FLOATS = ("verts", "centroid", "u", "rot", "fs", "fn", "fn0", "bolt_force", "strain",
+                "stress")
+LOAD_FLOATS = ("force", "water_y")
+SNAPSHOT_FLOATS = ("point", "normal", "fn", "fs", "pw")
+
+
+def _fields(obj, names) -> dict:
+    return {k: getattr(obj, k) for k in names}
+
+
+def _tangent_terms(model: Model, sub: _Sub, ev, du):
+    """The exact tangent K = -dR/d(du) with the slots' states held, as terms (a, b, L, R, k).
+
+    Per slot, the local derivatives of (fn, fs) with respect to the trial
+    forces (fn_trial = fn0 - kn (gap + Bn x), fs_trial = fs_old + ks Bs x) in
+    the held state: identity when sticking, zero when open, and for a slip
+    d fs / d fn_trial = sign(fs) tan(phi), which makes K unsymmetric.
+    """
+    held = ev["state"]
+    law = lambda fn_t, fs_t: forces_in_state(fn_t, fs_t, sub.prop, sub.failed, held)  # noqa: E731
+    one, zero = jnp.ones_like(ev["fn_trial"]), jnp.zeros_like(ev["fn_trial"])
+    _, (nn, sn) = jax.jvp(law, (ev["fn_trial"], ev["fs_trial"]), (one, zero))
+    _, (ns, ss) = jax.jvp(law, (ev["fn_trial"], ev["fs_trial"]), (zero, one))
+    kn, ks = sub.prop["kn"], sub.prop["ks"]
+    a, b, Bn, Bs = sub.geo["a"], sub.geo["b"], sub.Bn, sub.Bs
+    terms = [(a, b, Bn, Bn, nn * kn), (a, b, Bn, Bs, -ns * ks), (a, b, Bs, Bn, -sn * kn),
+             (a, b, Bs, Bs, ss * ks)]
+    if model.n_bolts:
+        bolt = sub.bolt
+        elong = jnp.sum(bolt["B"] * _gather(du, bolt["a"], bolt["b"]), axis=1)
+        trial = bolt["f_old"] + model.bolt_k * elong
+        elastic = bolt["active"] & (jnp.abs(trial) <= model.bolt_cap)
+        terms.append((bolt["a"], bolt["b"], bolt["B"], bolt["B"],
+                      jnp.where(elastic, model.bolt_k, 0.0)))
+    return [jnp.concatenate(x) for x in zip(*terms, strict=True)]
+
+
+def _tangent_solve(model: Model, sub: _Sub, terms, rhs):
+    """K^-1 rhs for p right-hand sides (p, N, D), K the exact (possibly unsymmetric) tangent."""
+    p = rhs.shape[0]
+    N, D = model.n_blocks, model.ndof
+    a, b, L, Rt, k = terms
+    diag = jnp.where(jnp.repeat(sub.free, D), 0.0, 1.0).astype(rhs.dtype)
+    B = rhs.reshape(p, N * D).T
+    if model.linear_solver == "dense":
+        x = jnp.linalg.solve(_assemble_dense(model, sub, a, b, L, Rt, k, diag), B)
+    else:
+        Kc = sub.Kc if sub.Kc is not None else jnp.zeros((0, D, D), rhs.dtype)
+        x = jax.pure_callback(functools.partial(_host_sparse_solve, symmetric=False),
+                              jax.ShapeDtypeStruct(B.shape, B.dtype), a, b, L, Rt, k, Kc, diag,
+                              B, vmap_method="sequential")
+    return x.T.reshape(rhs.shape)
+
+
+def _substep_tangent(model: Model, state: State, loads: Loads, new_state: State, du, converged,
+                     dmodel, dstate, dloads):
+    """Derivatives of one sub-step's new state and snapshot (see :func:`increment_tangent`)."""
+    held = new_state.cstate.reshape(-1)
+    all_held = jnp.ones(held.shape, bool)
+
+    def step(mf, sf, lf, x):
+        m = dataclasses.replace(model, **mf)
+        s = dataclasses.replace(state, **sf)
+        ld = dataclasses.replace(loads, **lf)
+        mdl, sub, _, pairs, _ = _prepare(m, s, ld)
+        ev = _evaluate(mdl, sub, x, all_held, held, held, 0.0)
+        new, _, snap = _commit(mdl, s, sub, pairs, x, ev)
+        return ev["R"], _fields(new, STATE_FLOATS), {k: snap[k] for k in SNAPSHOT_FLOATS}
+
+    primals = (_fields(model, SMOOTH_MODEL), _fields(state, STATE_FLOATS),
+               _fields(loads, LOAD_FLOATS), du)
+    _, lin = jax.linearize(step, *primals)
+    p = jax.tree.leaves(dstate)[0].shape[0]
+    none = jax.tree.map(lambda x: jnp.zeros((p,) + x.shape, x.dtype), primals)
+    dR, ds1, dsnap1 = jax.vmap(lin)(dmodel, dstate, dloads, none[3])
+    mdl, sub, _, _, _ = _prepare(model, state, loads)
+    ev = _evaluate(mdl, sub, du, all_held, held, held, 0.0)
+    ddu = _tangent_solve(mdl, sub, _tangent_terms(mdl, sub, ev, du), dR)
+    ddu = jnp.where(converged, ddu, 0.0)
+    _, ds2, dsnap2 = jax.vmap(lin)(*none[:3], ddu)
+    add = lambda x, y: jax.tree.map(jnp.add, x, y)  # noqa: E731
+    return add(ds1, ds2), add(dsnap1, dsnap2)
 
 
 # ---------------------------------------------------------------------------
@@ -626,36 +793,54 @@ def increment(model: Model, state: State, loads: Loads):
 _COMPILED: dict = {}
 
 
-def _compiled_increment(model: Model, state: State, loads: Loads):
-    """The compiled increment for these shapes and static settings, and its compile time (s)."""
-    leaves, tree = jax.tree.flatten((model, state, loads))
-    key = (tree, tuple((x.shape, str(x.dtype)) for x in leaves))
+def _compiled(fn, *args):
+    """``fn`` (jitted) compiled for these argument shapes and static settings, and the compile time (s)."""
+    leaves, tree = jax.tree.flatten(args)
+    key = (fn, tree, tuple((x.shape, str(x.dtype)) for x in leaves))
     if key in _COMPILED:
         return _COMPILED[key], 0.0
     t0 = time.perf_counter()
-    fn = increment.lower(model, state, loads).compile()
-    _COMPILED[key] = fn
-    return fn, time.perf_counter() - t0
+    compiled = fn.lower(*args).compile()
+    _COMPILED[key] = compiled
+    return compiled, time.perf_counter() - t0
 
 
-def run_increment(model: Model, state: State, loads: Loads):
+def _grow_tangent(dstate: dict, capacity: int) -> dict:
+    """Slot derivatives (p, P, 2, V) padded with zeros to a larger pair capacity."""
+    out = dict(dstate)
+    for k in ("fs", "fn", "fn0"):
+        x = dstate[k]
+        out[k] = jnp.zeros((x.shape[0], capacity) + x.shape[2:], x.dtype).at[:, :x.shape[1]].set(x)
+    return out
+
+
+def run_increment(model: Model, state: State, loads: Loads, tangents: dict | None = None):
     """One increment with capacity growth: on overflow, grow and redo from ``state``.
 
     Returns (model, state, info, compile_s): the model changes only when a
     grid cell capacity grew. Growing recompiles; nothing is ever truncated.
+    With ``tangents`` (see :func:`increment_tangent`) the state's derivatives
+    are carried along (``info["dstate"]``).
     """
     compile_s = 0.0
     while True:
-        fn, dt = _compiled_increment(model, state, loads)
+        if tangents is None:
+            fn, dt = _compiled(increment, model, state, loads)
+            new, info = fn(model, state, loads)
+        else:
+            fn, dt = _compiled(increment_tangent, model, state, loads, tangents)
+            new, info = fn(model, state, loads, tangents)
         compile_s += dt
-        new, info = fn(model, state, loads)
         if int(info["status"]) != Status.CAPACITY_OVERFLOW:
             return model, new, info, compile_s
         if bool(info["cell_full"]):
             model = dataclasses.replace(model, cell_capacity=2 * model.cell_capacity)
         need = int(info["pairs_needed"])
         if need > state.capacity:
-            state = grow_capacity(state, max(2 * state.capacity, int(1.3 * need) + 16))
+            capacity = max(2 * state.capacity, int(1.3 * need) + 16)
+            state = grow_capacity(state, capacity)
+            if tangents is not None:
+                tangents = dict(tangents, state=_grow_tangent(tangents["state"], capacity))
 
 
 def _imbalance(balance) -> float:
@@ -741,41 +926,172 @@ def make_loads(model: Model, force, water_x=None, water_y=None, bolt_active=None
                      else jnp.asarray(bolt_active)))
 
 
-class _Driver:
-    """Host loop over stages and load steps; collects the records of a Result."""
+@dataclasses.dataclass
+class Data:
+    """What the host driver applies, with derivatives: every array has a leading axis 1 + p.
 
-    def __init__(self, model, state, layout, scene, progress):
+    Entry 0 is the value, entries 1..p its derivatives with respect to p scene
+    parameters (p = 0 for a plain solve). The driver only adds and scales these
+    arrays, so derivatives follow the values through stages and load steps.
+
+    Attributes:
+      weight, traction: (1 + p, N, D) self-weight and boundary tractions (kN/m).
+      supports: one (1 + p, N, D) load per entry of ``Layout.supports``.
+      sigma: (1 + p, 3) uniform in-situ stress (kPa, compression positive);
+        k0, gamma, surface: (1 + p,) gravity in-situ K0, unit weight (kN/m3)
+        and ground surface (m).
+      water_x: (X,) abscissae of the water tables (m); water_y: (1 + p, X) the
+        scene's table; stage_water: {stage name: (1 + p, X)}.
+      dmodel: {field: (p, ...)} derivatives of the model's :data:`SMOOTH_MODEL`
+        fields (None when p = 0).
+    """
+
+    weight: np.ndarray
+    traction: np.ndarray
+    supports: list
+    sigma: np.ndarray
+    k0: np.ndarray
+    gamma: np.ndarray
+    surface: np.ndarray
+    water_x: np.ndarray
+    water_y: np.ndarray
+    stage_water: dict
+    dmodel: dict | None = None
+
+    @property
+    def p(self) -> int:
+        return self.weight.shape[0] - 1
+
+
+def scene_data(scene, layout) -> Data:
+    """The driver's inputs of a scene as built, without derivatives (p = 0)."""
+    one = lambda x: np.asarray(x, float)[None]  # noqa: E731
+    in_situ = scene.in_situ
+    gamma = surface = k0 = 0.0
+    sigma = np.zeros(3)
+    if in_situ is not None:
+        k0 = in_situ.k0
+        sigma = np.array([in_situ.sigma_xx, in_situ.sigma_yy, in_situ.sigma_xy])
+        if in_situ.mode == "gravity":
+            mats = [layout.materials[i] for i in range(layout.n_rock)
+                    if layout.excavation[i] is None]
+            name = scene.domain.material if scene.domain else mats[0]
+            gamma, surface = scene.materials[name].unit_weight, in_situ.surface_y
+    water = scene.water
+    tables = ([water.table] if water is not None else []) + [
+        st.water_table for st in scene.stages if st.water_table is not None]
+    xs = (np.unique(np.concatenate([np.asarray(t, float)[:, 0] for t in tables]))
+          if tables else np.array([0.0, 1.0]))
+    sample = lambda table: np.interp(xs, *np.asarray(table, float).T)  # noqa: E731
+    return Data(
+        weight=one(layout.weight), traction=one(layout.traction),
+        supports=[one(sp["force"]) for sp in layout.supports], sigma=one(sigma), k0=one(k0),
+        gamma=one(gamma), surface=one(surface), water_x=xs,
+        water_y=one(sample(water.table) if water is not None else np.full(xs.shape, -1e30)),
+        stage_water={st.name: one(sample(st.water_table)) for st in scene.stages
+                     if st.water_table is not None})
+
+
+def _release(centroid, snap, removed, ndof):
+    """Forces (N, D) that the blocks being removed exert on the others, from a contact snapshot.
+
+    The force of each contact on a remaining block is (fn + pw) n - fs t at the
+    contact point; :func:`point_row` is linear in the force, so it gives the
+    generalised force directly.
+    """
+    N = centroid.shape[0]
+    act = snap["active"]
+    a, b, p, n = snap["a"], snap["b"], snap["point"], snap["normal"]
+    t = jnp.stack([-n[:, 1], n[:, 0]], axis=1)
+    F = (snap["fn"] + snap["pw"])[:, None] * n - snap["fs"][:, None] * t
+    out = jnp.zeros((N, ndof), F.dtype)
+    for on, by, sign in ((a, b, 1.0), (b, a, -1.0)):
+        sel = act & removed[by] & ~removed[on]
+        f = jnp.where(sel[:, None], sign * F, 0.0)
+        out = out + jax.ops.segment_sum(point_row(p - centroid[on], f, ndof), on, N)
+    return out
+
+
+_release_jit = jax.jit(_release, static_argnums=3)
+
+
+@functools.partial(jax.jit, static_argnames=("ndof",))
+def _release_with_tangent(centroid, snap, removed, dcentroid, dsnap, ndof):
+    """:func:`_release` (N, D) and its derivatives (p, N, D)."""
+    def rel(c, floats):
+        return _release(c, dict(snap, **floats), removed, ndof)
+
+    floats = {k: snap[k] for k in SNAPSHOT_FLOATS}
+    value = rel(centroid, floats)
+    tangent = jax.vmap(lambda dc, ds: jax.jvp(rel, (centroid, floats), (dc, ds))[1])(
+        dcentroid, dsnap)
+    return value, tangent
+
+
+@functools.partial(jax.jit, static_argnames=("mode",))
+def _preload_tangent(model: Model, state: State, loads: Loads, args, dmodel, dloads, dargs,
+                     mode: str):
+    """Derivatives (p, ...) of the in-situ state of :func:`_preload`; args = (sigma, surface_y, gamma, k0)."""
+    def pre(mf, lf, a):
+        m = dataclasses.replace(model, **mf)
+        ld = dataclasses.replace(loads, **lf)
+        new, _ = _preload(m, state, ld, *a, mode=mode)
+        return _fields(new, STATE_FLOATS)
+
+    primals = (_fields(model, SMOOTH_MODEL), _fields(loads, LOAD_FLOATS), args)
+    return jax.vmap(lambda dm, dl, da: jax.jvp(pre, primals, (dm, dl, da))[1])(
+        dmodel, dloads, dargs)
+
+
+class _Driver:
+    """Host loop over stages and load steps; collects the records of a Result.
+
+    With derivatives (``data.p > 0``) it carries ``dstate``, the derivatives
+    of the state's :data:`STATE_FLOATS` with respect to the p parameters.
+    """
+
+    def __init__(self, model, state, layout, data: Data, progress):
         self.model, self.state, self.layout = model, state, layout
-        self.scene, self.progress = scene, progress
+        self.data, self.progress = data, progress
         self.compile_s = self.solve_s = 0.0
         self.records, self.history = [], []
         self.info = None
         self.ref = None  # the state displacements are measured from (None: the start)
+        self.dref = None
         self.status = Status.CONVERGED
-        nb = model.n_bolts
-        self.bolt_active = np.zeros(nb, bool)
-        water = scene.water
-        tables = ([water.table] if water is not None else []) + [
-            st.water_table for st in scene.stages if st.water_table is not None]
-        xs = np.unique(np.concatenate([np.asarray(t, float)[:, 0] for t in tables])) \
-            if tables else np.array([0.0, 1.0])
-        self.water_x = xs
-        self.water_y = (np.interp(xs, *np.asarray(water.table, float).T)
-                        if water is not None else np.full(xs.shape, -1e30))
+        self.bolt_active = np.zeros(model.n_bolts, bool)
+        self.water_y = data.water_y
+        self.approximate = False
+        p = data.p
+        self.dstate = None if p == 0 else {
+            k: jnp.zeros((p,) + getattr(state, k).shape, getattr(state, k).dtype)
+            for k in STATE_FLOATS}
 
     def loads(self, force, water_y=None, water_scale=1.0):
+        """Loads of an increment from (1 + p, ...) stacks, and their derivatives (or None)."""
         wy = self.water_y if water_y is None else water_y
-        return make_loads(self.model, force, self.water_x, wy, self.bolt_active, water_scale)
+        loads = make_loads(self.model, force[0], self.data.water_x, wy[0], self.bolt_active,
+                           water_scale)
+        if self.dstate is None:
+            return loads, None
+        dtype = loads.force.dtype
+        return loads, dict(force=jnp.asarray(force[1:], dtype), water_y=jnp.asarray(wy[1:], dtype))
 
     def step(self, stage, k, n, loads):
         from jaxdem.results import monitor_values
 
+        loads, dloads = loads
+        tangents = None if dloads is None else dict(model=self.data.dmodel, state=self.dstate,
+                                                    loads=dloads)
         t1 = time.perf_counter()
-        self.model, self.state, info, dt = run_increment(self.model, self.state, loads)
+        self.model, self.state, info, dt = run_increment(self.model, self.state, loads, tangents)
         jax.block_until_ready(self.state.verts)
         self.compile_s += dt
         self.solve_s += time.perf_counter() - t1 - dt
         self.info = info
+        if tangents is not None:
+            self.dstate = info["dstate"]
+            self.approximate |= bool(info["approximate"])
         self.status = Status(int(info["status"]))
         rec = dict(stage=stage, step=k, load_factor=k / n, status=self.status,
                    iterations=int(info["iterations"]), substeps=int(info["substeps"]),
@@ -789,25 +1105,38 @@ class _Driver:
                                residual=rec["residual"]))
         return self.status == Status.CONVERGED
 
+    def release(self, removed):
+        """Forces (1 + p, N, D) of the blocks being removed on the rest (last increment's contacts)."""
+        N, D = self.model.n_blocks, self.model.ndof
+        out = np.zeros((1 + self.data.p, N, D))
+        if not removed.any() or self.info is None:
+            return out
+        snap, rm = self.info["snapshot"], jnp.asarray(removed)
+        if self.dstate is None:
+            out[0] = np.asarray(_release_jit(self.state.centroid, snap, rm, D))
+            return out
+        value, tangent = _release_with_tangent(self.state.centroid, snap, rm,
+                                               self.dstate["centroid"], self.info["dsnapshot"], D)
+        out[0], out[1:] = np.asarray(value), np.asarray(tangent)
+        return out
 
-def _excavation_release(model, state, snapshot, removed):
-    """Forces (N, D) that the blocks being removed exert on the others (from the snapshot)."""
-    snap = {k: np.asarray(v) for k, v in snapshot.items()}
-    cen = np.asarray(state.centroid)
-    out = np.zeros((cen.shape[0], model.ndof))
-    act = snap["active"]
-    a, b, p, n = snap["a"][act], snap["b"][act], snap["point"][act], snap["normal"][act]
-    t = np.stack([-n[:, 1], n[:, 0]], axis=1)
-    F = (snap["fn"][act] + snap["pw"][act])[:, None] * n - snap["fs"][act][:, None] * t
-    for on, by, sign in ((a, b, 1.0), (b, a, -1.0)):
-        sel = removed[by] & ~removed[on]
-        f = sign * F[sel]
-        # |f| times the row of its unit direction: the generalised force of f.
-        mag = np.linalg.norm(f, axis=1)
-        unit = f / np.maximum(mag, 1e-300)[:, None]
-        row = np.asarray(point_row(p[sel] - cen[on[sel]], unit, model.ndof))
-        np.add.at(out, on[sel], mag[:, None] * row)
-    return out
+    def preload(self, scene, base):
+        """The in-situ state (contact forces of the in-situ stress at zero displacement)."""
+        data, mode = self.data, scene.in_situ.mode
+        args = tuple(jnp.asarray(x[0], self.layout.dtype)
+                     for x in (data.sigma, data.surface, data.gamma, data.k0))
+        loads, dloads = self.loads(base)
+        while True:
+            st, overflow = _preload(self.model, self.state, loads, *args, mode=mode)
+            if not bool(overflow):
+                break
+            self.state = grow_capacity(self.state, 2 * self.state.capacity)
+        if self.dstate is not None:
+            dargs = tuple(jnp.asarray(x[1:], self.layout.dtype)
+                          for x in (data.sigma, data.surface, data.gamma, data.k0))
+            self.dstate = _preload_tangent(self.model, self.state, loads, args, data.dmodel,
+                                           dloads, dargs, mode=mode)
+        self.state = st
 
 
 def solve(scene, set: dict | None = None, progress=None):
@@ -846,75 +1175,77 @@ def solve(scene, set: dict | None = None, progress=None):
     model, state, layout = model_mod.build(scene)
     jax.block_until_ready(state.verts)
     build_s = time.perf_counter() - t0
-    d = _Driver(model, state, layout, scene, progress)
-    n_rock = layout.n_rock
-    N = model.n_blocks
+    d = run(scene, model, state, layout, scene_data(scene, layout), progress)
+    timing = dict(build_s=build_s, compile_s=d.compile_s, solve_s=d.solve_s)
+    return build_result(scene, d.model, layout, d.state, d.ref, d.info, d.records, d.history,
+                        timing)
+
+
+def run(scene, model: Model, state: State, layout, data: Data, progress=None,
+        stage_end=None) -> _Driver:
+    """Run a built scene through its loading and stages; returns the finished driver.
+
+    ``data`` gives the loads (and, with p > 0, their derivatives, which the
+    driver then carries: :class:`Data`). ``stage_end``, if given, is called
+    with the driver and the stage name at the end of each stage ("initial"
+    for the state before the first stage).
+    """
+    d = _Driver(model, state, layout, data, progress)
     in_situ = scene.in_situ
-    D = model.ndof
-    base = np.zeros((N, D))
-    pending = np.zeros((N, D))  # applied over the first stage (uniform in-situ mode)
+    N, D = model.n_blocks, model.ndof
+    zero = np.zeros((1 + data.p, N, D))
+    pending = zero  # applied over the first stage (uniform in-situ mode)
     if in_situ is None:
         n = layout.load_steps
+        base = data.weight + data.traction
         for k in range(1, n + 1):
             # Pore pressure grows with the weight: a saturated slope is loaded
             # as a whole, not by full water pressure on a weightless mass.
-            loads = d.loads(k / n * (layout.weight + layout.traction), water_scale=k / n)
-            if not d.step("loading", k, n, loads):
+            if not d.step("loading", k, n, d.loads(k / n * base, water_scale=k / n)):
                 break
-        base = layout.weight + layout.traction
     else:
         if in_situ.mode == "gravity":
-            base = layout.weight + layout.traction
-            mats = [layout.materials[i] for i in range(n_rock) if layout.excavation[i] is None]
-            gamma = scene.materials[scene.domain.material if scene.domain else mats[0]].unit_weight
-            surface = in_situ.surface_y
+            base = data.weight + data.traction
         else:
-            base, pending = layout.traction, layout.weight
-            gamma = surface = 0.0
-        sigma = jnp.asarray([in_situ.sigma_xx, in_situ.sigma_yy, in_situ.sigma_xy], layout.dtype)
-        while True:
-            st, overflow = _preload(d.model, d.state, d.loads(base), sigma, surface, gamma,
-                                    in_situ.k0, mode=in_situ.mode)
-            if not bool(overflow):
-                break
-            d.state = grow_capacity(d.state, 2 * d.state.capacity)
-        d.state = st
+            base, pending = data.traction, data.weight
+        d.preload(scene, base)
         d.step("initial", 1, 1, d.loads(base))
     plan = _stage_plan(scene)
     # Displacements count from the state before the first stage, once there
     # is one and the loading before it found equilibrium.
     started = (plan or in_situ is not None) and d.status == Status.CONVERGED
-    d.ref = d.state if started else None
+    d.ref, d.dref = (d.state, d.dstate) if started else (None, None)
+    if stage_end is not None:
+        stage_end(d, "initial")
     for stage in plan:
         if d.status != Status.CONVERGED:
             break
         removed = np.zeros(N, bool)
-        removed[:n_rock] = [e is not None and e in stage["excavations"] for e in layout.excavation]
-        release = _excavation_release(d.model, d.state, d.info["snapshot"], removed) \
-            if removed.any() and d.info is not None else np.zeros((N, D))
+        removed[:layout.n_rock] = [e is not None and e in stage["excavations"]
+                                   for e in layout.excavation]
+        release = d.release(removed)
         if removed.any():
             alive = np.asarray(d.state.alive) & ~removed
             d.state = dataclasses.replace(d.state, alive=jnp.asarray(alive))
         for b, bs in enumerate(layout.bolt_stages):
             if bs == stage["name"] or (bs is None and stage["first"]):
                 d.bolt_active[b] = True
-        support = sum((sp["force"] for sp in layout.supports
+        support = sum((f for sp, f in zip(layout.supports, data.supports, strict=True)
                        if sp["stage"] == stage["name"] or (sp["stage"] is None and stage["first"])),
-                      np.zeros((N, D)))
-        y_old, y_new = d.water_y, d.water_y
-        if stage["water_table"] is not None:
-            y_new = np.interp(d.water_x, *np.asarray(stage["water_table"], float).T)
+                      zero)
+        y_old = d.water_y
+        y_new = data.stage_water.get(stage["name"], y_old)
         n = stage["load_steps"] or layout.load_steps
         for k in range(1, n + 1):
             lam = k / n
             force = base + (1 - lam) * release + lam * (pending + support)
             if not d.step(stage["name"], k, n, d.loads(force, (1 - lam) * y_old + lam * y_new)):
                 break
-        base, pending = base + pending + support, np.zeros((N, D))
+        base, pending = base + pending + support, zero
         d.water_y = y_new
-    timing = dict(build_s=build_s, compile_s=d.compile_s, solve_s=d.solve_s)
-    return build_result(scene, d.model, layout, d.state, d.ref, d.info, d.records, d.history,
-                        timing)
+        if stage_end is not None and d.status == Status.CONVERGED:
+            stage_end(d, stage["name"])
+    return d
 
 
 def _stage_plan(scene) -> list[dict]:
