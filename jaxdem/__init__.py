@@ -16,9 +16,10 @@ import jax
 # float64 by default; a scene may ask for float32 (solver.dtype).
 jax.config.update("jax_enable_x64", True)
 
+from jaxdem.differentiable import differentiable  # noqa: E402
 from jaxdem.results import Result  # noqa: E402
 from jaxdem.scene import Scene, SceneError, load_scene  # noqa: E402
 from jaxdem.solver import Status, solve  # noqa: E402
 
-__all__ = ["Result", "Scene", "SceneError", "Status", "load_scene", "solve"]
+__all__ = ["Result", "Scene", "SceneError", "Status", "differentiable", "load_scene", "solve"]
 __version__ = "0.1.0"

@@ -5,13 +5,19 @@
     jaxdem demo  [--out DIR]                                   # bundled demo scene
     jaxdem run   SCENE.toml [--out DIR] [--set PATH=VALUE ...]  # solve, write results
     jaxdem check SCENE.toml [--out DIR]                         # validate, draw blocks
+    jaxdem back-analyse SCENE.toml --observed FILE.csv --fit PATH [--fit PATH ...]
+           [--bounds PATH=LO:HI ...] [--optimizer lbfgs|adam] [--max-iterations N]
+           [--out DIR] [--set PATH=VALUE ...]                   # fit parameters to measurements
 
 Exit status: 0 when solved (stable or not: a mechanism is an answer), 2 on
 invalid input (one line ``error: <message>`` on stderr naming the field, no
 traceback), 3 when the solver did not converge (iteration limit, non-finite
 values, contact capacity overflow). ``run`` writes ``result.json`` and the
 figures in every case where the solver returned, so that a failed run can be
-looked at.
+looked at. ``back-analyse`` exits 0 when the fit ran (converged or not, every
+parameter identifiable or not), 3 when the model has no equilibrium at the
+starting parameters; it writes ``back_analysis.json`` in every case, and the
+figures when the fit ran.
 
 JAX, the solver and matplotlib are imported inside the commands, so that
 ``jaxdem --help`` answers at once.
@@ -34,6 +40,7 @@ EXIT_NOT_CONVERGED = 3
 SOLVED_STATUSES = ("converged", "mechanism")
 
 DEFAULT_DEMO_OUT = "jaxdem-demo"
+DEFAULT_BACK_ANALYSIS_OUT = "jaxdem-back-analysis"
 
 
 class InputError(Exception):
@@ -107,6 +114,41 @@ def cmd_check(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_back_analyse(args: argparse.Namespace) -> int:
+    """Fit scene parameters to measured monitor values; write back_analysis.json and figures."""
+    path = Path(args.scene)
+    out = Path(args.out)
+    overrides = _parse_overrides([item for group in args.set or [] for item in group])
+    bounds = _parse_bounds([item for group in args.bounds or [] for item in group])
+    if args.max_iterations < 0:
+        raise InputError(f"--max-iterations must be >= 0 (got {args.max_iterations})")
+    scene = _load(path, overrides)
+
+    from inverse import back_analyse, read_observations
+    from inverse.backanalysis import NO_EQUILIBRIUM_AT_START
+    from inverse.plots import write_figures
+
+    observations = read_observations(args.observed)
+    print(f"{_scene_name(scene, path)}: {_scene_summary(scene)}")
+    print(f"fitting {', '.join(args.fit)} to {len(observations)} observations "
+          f"({args.optimizer}, at most {args.max_iterations} iterations)")
+    result = back_analyse(
+        scene,
+        observations,
+        args.fit,
+        bounds=bounds,
+        optimizer=args.optimizer,
+        max_iterations=args.max_iterations,
+        progress=_print_iteration,
+    )
+    written = [_write_json(result.to_dict(), out / "back_analysis.json")]
+    if result.status != NO_EQUILIBRIUM_AT_START:
+        written += write_figures(result, out)
+    print(_back_analysis_summary(result))
+    print("wrote " + ", ".join(str(p) for p in written))
+    return EXIT_NOT_CONVERGED if result.status == NO_EQUILIBRIUM_AT_START else EXIT_OK
+
+
 # ---------------------------------------------------------------------------
 # Shared steps
 
@@ -144,6 +186,36 @@ def _parse_overrides(items: Sequence[str]) -> dict[str, Any]:
     from jaxdem.scene import parse_set_arguments
 
     return dict(parse_set_arguments(list(items)))
+
+
+def _parse_bounds(items: Sequence[str]) -> dict[str, tuple[float, float]]:
+    """``--bounds PATH=LO:HI`` arguments to ``{PATH: (LO, HI)}``; bad syntax raises
+    SceneError (exit 2). Whether LO < HI and the path is fitted is checked by the fit."""
+    from jaxdem.scene import SceneError
+
+    out: dict[str, tuple[float, float]] = {}
+    for item in items:
+        path, equals, text = item.partition("=")
+        lo_text, colon, hi_text = text.partition(":")
+        path = path.strip()
+        if not equals or not colon or not path:
+            raise SceneError("--bounds", f"expected PATH=LO:HI, e.g. joints.set1.kn=1e5:1e8 "
+                                         f"(got {item!r})")
+        try:
+            lo, hi = float(lo_text), float(hi_text)
+        except ValueError:
+            raise SceneError("--bounds", f"bounds of {path} must be numbers LO:HI "
+                                         f"(got {text!r})") from None
+        out[path] = (lo, hi)
+    return out
+
+
+def _write_json(data: dict[str, Any], path: Path) -> Path:
+    import json
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=2, allow_nan=False) + "\n")
+    return path
 
 
 def _error(message: str) -> None:
@@ -297,6 +369,44 @@ def _monitor_table(monitors: dict[str, dict[str, Any]]) -> list[str]:
     return rows
 
 
+def _print_iteration(event: dict[str, Any]) -> None:
+    """One line per back-analysis iteration, on stderr like the solver's progress."""
+    params = "  ".join(f"{path}={value:.5g}" for path, value in event["params"].items())
+    print(
+        f"it {event['iteration']:>3}  misfit {event['misfit']:.4e}  "
+        f"|grad| {event['gradient_norm']:.2e}  {params}",
+        file=sys.stderr,
+        flush=True,
+    )
+
+
+def _back_analysis_summary(result: Any) -> str:
+    """Estimates with standard deviations, the misfit, warnings and status."""
+    width = max(9, *(len(p) for p in result.paths))
+    lines = [f"{'parameter':<{width}}  {'start':>11} {'estimate':>11} {'std':>10} {'std/est':>8}"]
+    for path in result.paths:
+        start, estimate, std = result.start[path], result.params[path], result.std[path]
+        row = f"{path:<{width}}  {start:>11.5g} {estimate:>11.5g}"
+        if not result.identifiable[path]:
+            row += "  not identifiable"
+        else:
+            relative = f"{100 * std / abs(estimate):.2g}%" if estimate else ""
+            row += f" {std:>10.3g} {relative:>8}"
+        lines.append(row)
+    evaluations = result.evaluations
+    lines.append(
+        f"misfit {result.misfit:.4g} (start {result.history[0]:.4g}) for "
+        f"{len(result.observations)} observations after {result.iterations} iterations; "
+        f"solves: {evaluations.get('gradient', 0)} with derivatives, "
+        f"{evaluations.get('forward', 0)} values only"
+    )
+    if result.warnings:
+        lines.append("warnings:")
+        lines += [f"  - {warning}" for warning in result.warnings]
+    lines.append(f"status: {result.status}: {result.message}")
+    return "\n".join(lines)
+
+
 # ---------------------------------------------------------------------------
 # Parser
 
@@ -334,4 +444,52 @@ def _parser() -> argparse.ArgumentParser:
     check.add_argument("scene", metavar="SCENE.toml")
     check.add_argument("--out", metavar="DIR", help="output folder (default out/<scene name>)")
     check.set_defaults(func=cmd_check)
+
+    back = sub.add_parser(
+        "back-analyse",
+        help="fit scene parameters to measured monitor values",
+        description="Fit scene parameters to measured monitor values (L-BFGS on gradients of "
+        "the monitors); report estimates, Gauss-Newton standard deviations and which "
+        "parameters the measurements determine.",
+    )
+    back.add_argument("scene", metavar="SCENE.toml")
+    back.add_argument(
+        "--observed",
+        required=True,
+        metavar="FILE.csv",
+        help="measurements: columns monitor,value,std (m) and optionally stage, component "
+        "(ux|uy for point monitors); blank std: 5%% of |value|, at least 0.1 mm",
+    )
+    back.add_argument(
+        "--fit",
+        action="append",
+        required=True,
+        metavar="PATH",
+        help="parameter to fit, e.g. joints.set1.kn (repeatable)",
+    )
+    back.add_argument(
+        "--bounds",
+        action="append",
+        nargs="+",
+        metavar="PATH=LO:HI",
+        help="bounds of a fitted parameter (default theta0/100 to theta0*100 when positive)",
+    )
+    back.add_argument("--optimizer", choices=("lbfgs", "adam"), default="lbfgs",
+                      help="lbfgs (default) or adam")
+    back.add_argument("--max-iterations", type=int, default=50, metavar="N",
+                      help="most optimiser iterations (default 50)")
+    back.add_argument(
+        "--out",
+        default=DEFAULT_BACK_ANALYSIS_OUT,
+        metavar="DIR",
+        help=f"output folder (default {DEFAULT_BACK_ANALYSIS_OUT})",
+    )
+    back.add_argument(
+        "--set",
+        action="append",
+        nargs="+",
+        metavar="PATH=VALUE",
+        help="override scene parameters before fitting (repeatable)",
+    )
+    back.set_defaults(func=cmd_back_analyse)
     return parser

@@ -291,6 +291,8 @@ class _ParameterMap:
         for path in paths:
             try:
                 self.kinds.append(self._kind(path))
+            except SceneError:
+                raise
             except (KeyError, IndexError, ValueError, AttributeError, TypeError):
                 raise SceneError(path, "no such parameter") from None
         self.theta0 = np.array([k["value"] for k in self.kinds], float)

@@ -726,7 +726,10 @@ def _tangent_terms(model: Model, sub: _Sub, ev, du):
     one, zero = jnp.ones_like(ev["fn_trial"]), jnp.zeros_like(ev["fn_trial"])
     _, (nn, sn) = jax.jvp(law, (ev["fn_trial"], ev["fs_trial"]), (one, zero))
     _, (ns, ss) = jax.jvp(law, (ev["fn_trial"], ev["fs_trial"]), (zero, one))
-    kn, ks = sub.prop["kn"], sub.prop["ks"]
+    # Springs of empty slots can be undefined (0 x inf): only active ones enter.
+    active = sub.geo["active"]
+    kn = jnp.where(active, sub.prop["kn"], 0.0)
+    ks = jnp.where(active, sub.prop["ks"], 0.0)
     a, b, Bn, Bs = sub.geo["a"], sub.geo["b"], sub.Bn, sub.Bs
     terms = [(a, b, Bn, Bn, nn * kn), (a, b, Bn, Bs, -ns * ks), (a, b, Bs, Bn, -sn * kn),
              (a, b, Bs, Bs, ss * ks)]

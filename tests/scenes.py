@@ -94,3 +94,43 @@ def tall_block(width: float, height: float, alpha: float = 20.0, phi: float = 40
     joint = {"kn": 1e6, "ks": 5e5, "friction_deg": phi}
     return _block_on_slope(f"toppling {width}x{height}", alpha, width, height, ("j", joint),
                            {"load_steps": 1, "max_displacement": 0.3 * height})
+
+
+def jointed_tunnel(*, spacing: float = 3.0, half: float = 9.0, water: bool = True,
+                   bolts: bool = True, support: float = 100.0, load_steps: int = 1,
+                   top: str = "traction") -> dict:
+    """A small jointed tunnel: two joint sets, gravity in-situ stress, a horseshoe opening,
+    a roof bolt, a support pressure and a water table; a crown point and a section monitor.
+    ``top``: "traction" (the overburden as a load) or "roller" (a wall, which holds any
+    in-situ stress in equilibrium)."""
+    d = {
+        "scene": {"name": "small jointed tunnel"},
+        "solver": {"load_steps": load_steps},
+        "materials": {"rock": {"E": 2.0e7, "nu": 0.25, "unit_weight": 26.0, "cohesion": 2000.0,
+                               "friction_deg": 45.0, "tensile_strength": 1000.0}},
+        "joints": {
+            "set1": {"kn": 2.0e6, "ks": 5.0e5, "friction_deg": 35.0, "cohesion": 20.0,
+                     "dip_deg": 30.0, "spacing": spacing},
+            "set2": {"kn": 1.0e6, "ks": 4.0e5, "friction_deg": 30.0, "cohesion": 20.0,
+                     "dip_deg": 120.0, "spacing": spacing},
+        },
+        "domain": {"outline": [[-half, -half], [half, -half], [half, half], [-half, half]],
+                   "material": "rock"},
+        "excavations": [{"name": "tunnel", "shape": "horseshoe", "center": [0.0, -2.0],
+                         "width": 4.0, "height": 4.0}],
+        # The overburden above the model (surface at 40 m) as a traction on top.
+        "boundaries": [{"side": s, "condition": "roller"} for s in ("left", "right", "bottom")]
+        + [{"side": "top", "condition": "traction", "traction": [0.0, -26.0 * (40.0 - half)]}
+           if top == "traction" else {"side": "top", "condition": "roller"}],
+        "in_situ": {"mode": "gravity", "k0": 0.8, "surface_y": 40.0},
+        "monitors": [{"name": "crown", "point": [0.0, 2.05]},
+                     {"name": "span", "from": [-2.05, -1.0], "to": [2.05, -1.0]}],
+    }
+    if support:
+        d["supports"] = [{"excavation": "tunnel", "pressure": support}]
+    if bolts:
+        d["bolts"] = [{"from": [0.0, 2.1], "to": [0.0, 6.0], "stiffness": 5.0e4,
+                       "yield_force": 200.0, "anchor_capacity": 300.0}]
+    if water:
+        d["water"] = {"table": [[-half, 30.0], [half, 32.0]]}
+    return d

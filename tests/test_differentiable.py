@@ -1,0 +1,194 @@
+"""jaxdem.differentiable: derivatives of the monitors against finite differences and closed forms.
+
+The derivatives are implicit (one linear solve per converged sub-step, contact
+states held), so they must agree with central differences of the full solve
+wherever no contact changes state within the difference step.
+"""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scenes import jointed_tunnel, stack
+
+import jaxdem
+from jaxdem.differentiable import Problem
+from jaxdem.laws import equivalent_stiffness, intact_stiffness
+from jaxdem.scene import SceneError, parse_scene
+
+
+def _slipping_tunnel():
+    """The small jointed tunnel with a weak second set: slipping and open contacts at the end.
+
+    The top is a roller wall, so that the in-situ state stays in equilibrium when
+    the in-situ parameters change (with a traction on top, a change of the
+    stress field would move the model in the initial step and close or open the
+    corner contacts that the in-situ state leaves at exactly zero force: a
+    state threshold).
+    """
+    d = jointed_tunnel(top="roller")
+    d["joints"]["set1"].update(friction_deg=30.0, cohesion=0.0)
+    d["joints"]["set2"].update(friction_deg=15.0, cohesion=2.0)
+    d["water"]["table"] = [[-9.0, 2.0], [9.0, 3.0]]
+    return d
+
+
+TUNNEL_PARAMS = ["joints.set1.kn", "joints.set1.ks", "joints.set2.friction_deg",
+                 "materials.rock.E", "materials.rock.nu", "in_situ.k0", "in_situ.surface_y",
+                 "bolts.0.stiffness", "supports.0.pressure", "water.table.1.1"]
+
+
+@pytest.fixture(scope="module")
+def tunnel():
+    scene = parse_scene(_slipping_tunnel())
+    problem = Problem(scene, TUNNEL_PARAMS + ["joints.set2.cohesion"])
+    y, J = problem.evaluate(problem.theta0, jacobian=True)
+    return scene, problem, y, J
+
+
+def test_tunnel_has_slipping_and_open_contacts_and_exact_sub_steps(tunnel):
+    scene, problem, y, _ = tunnel
+    r = jaxdem.solve(scene)
+    assert r.converged
+    assert r.contacts["slipping"] >= 3 and r.contacts["open"] >= 10
+    assert not problem.last["approximate"]
+    # f's values are the solve's monitors.
+    assert y[2] == pytest.approx(r.monitors["span"]["convergence"], rel=1e-9)
+
+
+def _central_difference(problem, i, rel):
+    theta = problem.theta0
+    e = np.zeros_like(theta)
+    e[i] = rel * abs(theta[i])
+    return (problem.evaluate(theta + e)[0] - problem.evaluate(theta - e)[0]) / (2 * e[i])
+
+
+@pytest.mark.parametrize("i", range(len(TUNNEL_PARAMS)), ids=TUNNEL_PARAMS)
+def test_tunnel_derivatives_match_central_differences(tunnel, i):
+    _, problem, _, J = tunnel
+    fd = _central_difference(problem, i, 1e-4)
+    scale = np.max(np.abs(fd))
+    assert scale > 0, "the monitors must depend on the parameter"
+    assert np.max(np.abs(J[:, i] - fd)) <= 1e-5 * scale
+
+
+def test_tunnel_cohesion_derivative_is_small_and_matches_central_differences(tunnel):
+    """Cohesion is lost when a contact first slips, so it acts only through contacts that
+    fail in the last sub-step: here the monitors move 1e-10 m per kPa against 1 mm of
+    convergence. Central differences of so small an effect carry the solver's round-off
+    (1e-14 m): they settle to 1e-4 with a step of 1% and no better, so that is the test."""
+    _, problem, _, J = tunnel
+    i = len(TUNNEL_PARAMS)
+    fd = _central_difference(problem, i, 1e-2)
+    scale = np.max(np.abs(fd))
+    assert 1e-11 < scale < 1e-9
+    assert np.max(np.abs(J[:, i] - fd)) <= 2e-3 * scale
+
+
+def test_uniform_in_situ_stress_derivatives_match_central_differences():
+    d = jointed_tunnel(water=False, bolts=False, top="roller")
+    d["in_situ"] = {"mode": "uniform", "sigma_xx": 600.0, "sigma_yy": 800.0, "sigma_xy": 50.0}
+    d["materials"]["rock"]["unit_weight"] = 0.0
+    problem = Problem(parse_scene(d), ["in_situ.sigma_xx", "in_situ.sigma_yy",
+                                       "in_situ.sigma_xy"])
+    _, J = problem.evaluate(problem.theta0, jacobian=True)
+    assert problem.last["status"] == jaxdem.Status.CONVERGED
+    for i in range(3):
+        fd = _central_difference(problem, i, 1e-4)
+        assert np.max(np.abs(J[:, i] - fd)) <= 1e-5 * np.max(np.abs(fd))
+
+
+def roof_prism(alpha_deg=20.0, height=2.0, kn=1e6, ks=4e5, sigma_xx=500.0):
+    """A symmetric roof prism (apex up, semi-apical angle alpha) between two fixed blocks,
+    clamped by a horizontal stress; its weight is applied in a stage."""
+    half = height * math.tan(math.radians(alpha_deg))
+    apex, left, right = [0.0, height], [-half, 0.0], [half, 0.0]
+    top = height + 3.0
+    return {
+        "scene": {"name": "roof prism"}, "solver": {"load_steps": 1},
+        # Rigid rock: the joints are the only compliance of the closed form.
+        "materials": {"rock": {"E": 1e13, "nu": 0.2, "unit_weight": 25.0}},
+        "joints": {"j": {"kn": kn, "ks": ks, "friction_deg": 60.0, "cohesion": 100.0}},
+        "blocks": [
+            {"vertices": [[-10.0, 0.0], left, apex, [0.0, top], [-10.0, top]],
+             "material": "rock", "fixed": True},
+            {"vertices": [right, [10.0, 0.0], [10.0, top], [0.0, top], apex],
+             "material": "rock", "fixed": True},
+            {"vertices": [left, right, apex], "material": "rock"},
+        ],
+        "in_situ": {"mode": "uniform", "sigma_xx": sigma_xx, "sigma_yy": 0.0, "sigma_xy": 0.0},
+        "stages": [{"name": "gravity"}],
+        "monitors": [{"name": "prism", "point": [0.0, height / 3]}],
+    }
+
+
+@pytest.mark.parametrize("alpha_deg", [15.0, 30.0])
+def test_roof_prism_sag_derivatives_match_bray(alpha_deg):
+    """Brady & Brown, Rock Mechanics for Underground Mining, section 9.3 (after Bray):
+    the elastic sag of a clamped roof prism is W / (2 (Ks cos^2 a + Kn sin^2 a)), with
+    Kn = kn L, Ks = ks L the stiffnesses of a face of length L."""
+    kn, ks, height = 1e6, 4e5, 2.0
+    f, theta0 = jaxdem.differentiable(parse_scene(roof_prism(alpha_deg, height, kn, ks)),
+                                      ["joints.j.kn", "joints.j.ks"])
+    a = math.radians(alpha_deg)
+    L = height / math.cos(a)
+    W = 25.0 * height**2 * math.tan(a)
+    den = 2 * L * (ks * math.cos(a) ** 2 + kn * math.sin(a) ** 2)
+    sag = lambda th: -f(th)["prism"][1]  # noqa: E731
+    assert float(sag(theta0)) == pytest.approx(W / den, rel=1e-4)
+    grad = jax.grad(sag)(theta0)
+    assert float(grad[0]) == pytest.approx(-W * 2 * L * math.sin(a) ** 2 / den**2, rel=1e-4)
+    assert float(grad[1]) == pytest.approx(-W * 2 * L * math.cos(a) ** 2 / den**2, rel=1e-4)
+
+
+def test_stack_settlement_derivative_matches_closed_form():
+    """Settlement of a column of n blocks: sum_k W (n - k) / (k_eq,k width), with
+    1 / k_eq = h1 / kn_i + h2 / kn_i + 1 / kn (paper eqs. 6-7), so
+    d settlement / d kn = -sum_k W (n - k) / (width kn^2) over the joints."""
+    n, kn = 3, 1e6
+    f, theta0 = jaxdem.differentiable(parse_scene(stack(n, kn=kn)), ["joints.j.kn"])
+    settle = lambda th: -f(th)["top"][1]  # noqa: E731
+    kn_i, _ = intact_stiffness(1e7, 0.25)
+    W = 25.0
+    closed = sum(W * (n - k) / equivalent_stiffness(0.5, 0.5, 1 / kn_i, 1 / kn_i, 1 / kn)
+                 for k in range(n))
+    assert float(settle(theta0)) == pytest.approx(closed, rel=1e-4)
+    d_closed = -sum(W * (n - k) / kn**2 for k in range(n))
+    assert float(jax.grad(settle)(theta0)[0]) == pytest.approx(d_closed, rel=1e-4)
+
+
+def test_jit_grad_and_vmap_compose():
+    f, theta0 = jaxdem.differentiable(parse_scene(stack(2)), ["joints.j.kn", "materials.rock.E"])
+
+    def loss(th):
+        return (f(th)["top"][1] + 1e-4) ** 2
+
+    scales = jnp.linspace(0.5, 2.0, 8)
+    thetas = theta0[None, :] * jnp.stack([scales, scales[::-1]], axis=1)
+    batched = jax.jit(jax.vmap(jax.grad(loss)))(thetas)
+    single = jnp.stack([jax.grad(loss)(th) for th in thetas])
+    np.testing.assert_allclose(batched, single, rtol=1e-12)
+    # Forward and reverse mode agree.
+    np.testing.assert_allclose(jax.jacfwd(loss)(theta0), jax.jacrev(loss)(theta0), rtol=1e-12)
+    assert float(jax.jit(loss)(theta0)) == pytest.approx(float(loss(theta0)))
+
+
+def test_no_equilibrium_gives_nan():
+    from scenes import block_on_incline
+
+    f, theta0 = jaxdem.differentiable(parse_scene(block_on_incline(30.0, 20.0)),
+                                      ["joints.base.kn"])
+    assert np.all(np.isnan(np.asarray(f(theta0)["block"])))
+
+
+@pytest.mark.parametrize("path, problem", [
+    ("joints.set9.kn", "no such parameter"),
+    ("joints.j.spacing", "depends on smoothly"),
+    ("solver.tolerance", "depends on smoothly"),
+    ("blocks.1.vertices.0.0", "depends on smoothly"),
+])
+def test_parameters_that_are_not_smooth_are_refused(path, problem):
+    with pytest.raises(SceneError, match=problem):
+        jaxdem.differentiable(parse_scene(stack(2)), [path])
