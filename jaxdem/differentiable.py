@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import functools
 from collections.abc import Sequence
 
 import jax
@@ -163,7 +164,7 @@ class Problem:
         found = {}
 
         def stage_end(d, name):
-            if want is None or name in want:
+            if want is not None and name in want:
                 found[name] = self._monitors(d)
 
         d = run(self.scene, model, self.state, self.layout, data, stage_end=stage_end)
@@ -188,20 +189,28 @@ class Problem:
         """{monitor: (2,) or (1,)} values and {monitor: (p, 2) or (p, 1)} derivatives of a driver."""
         now = {k: getattr(d.state, k) for k in ("centroid", "rot", "strain")}
         ref = None if d.ref is None else {k: getattr(d.ref, k) for k in now}
-        values = _monitor_values(self.layout, now, ref)
         if d.dstate is None:
-            return ({k: np.asarray(v) for k, v in values.items()},
-                    {k: None for k in values})
+            values = self._readings(now, ref)
+            return {k: np.asarray(v) for k, v in values.items()}, None
         dnow = {k: d.dstate[k] for k in now}
         dref = None if d.dref is None else {k: d.dref[k] for k in now}
-
-        def tangent(dn, dr):
-            return jax.jvp(lambda a, b: _monitor_values(self.layout, a, b),
-                           (now, ref), (dn, dr))[1]
-
-        tangents = jax.vmap(tangent)(dnow, dref)
+        values, tangents = self._readings_and_tangents(now, ref, dnow, dref)
         return ({k: np.asarray(v) for k, v in values.items()},
                 {k: np.asarray(v) for k, v in tangents.items()})
+
+    @functools.cached_property
+    def _readings(self):
+        return jax.jit(functools.partial(_monitor_values, self.layout))
+
+    @functools.cached_property
+    def _readings_and_tangents(self):
+        read = functools.partial(_monitor_values, self.layout)
+
+        def both(now, ref, dnow, dref):
+            tangent = lambda dn, dr: jax.jvp(read, (now, ref), (dn, dr))[1]  # noqa: E731
+            return read(now, ref), jax.vmap(tangent)(dnow, dref)
+
+        return jax.jit(both)
 
     # -- the JAX function --------------------------------------------------
 
@@ -343,12 +352,8 @@ class _ParameterMap:
         """(model fields, Data) at theta, with derivatives when asked (see the class)."""
         theta = jnp.asarray(theta, jnp.float64)
         p = theta.shape[0]
-        fields, arrays = self._values(theta)
-        if derivatives:
-            tangents = jax.vmap(lambda e: jax.jvp(self._values, (theta,), (e,))[1])(
-                jnp.eye(p, dtype=theta.dtype))
-        else:
-            tangents = None
+        fields, arrays = self._jit_values(theta)
+        tangents = self._jit_tangents(theta) if derivatives else None
         cast = lambda x: jnp.asarray(x, self.dtype)  # noqa: E731
         model_fields = {k: cast(v) for k, v in fields.items()}
 
@@ -357,6 +362,7 @@ class _ParameterMap:
             if tangents is None:
                 return v
             return np.concatenate([v, np.asarray(tangents[1][name])])
+
 
         data = dataclasses.replace(
             self.data, weight=stack("weight"), traction=self.data.traction
@@ -367,6 +373,19 @@ class _ParameterMap:
             stage_water={k: stack(f"water:{k}") for k in self.data.stage_water},
             dmodel=None if tangents is None else {k: cast(v) for k, v in tangents[0].items()})
         return model_fields, data
+
+    @functools.cached_property
+    def _jit_values(self):
+        return jax.jit(self._values)
+
+    @functools.cached_property
+    def _jit_tangents(self):
+        """The derivatives of :meth:`_values` with respect to each parameter, stacked first."""
+        def tangents(theta):
+            eye = jnp.eye(theta.shape[0], dtype=theta.dtype)
+            return jax.vmap(lambda e: jax.jvp(self._values, (theta,), (e,))[1])(eye)
+
+        return jax.jit(tangents)
 
     def _values(self, theta):
         """({model field: value}, {driver array: value}) at theta, in jax.numpy."""

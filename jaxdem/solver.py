@@ -138,9 +138,12 @@ def _rotate_tensor(v, angle):
                       c * s * (xx - yy) + (c * c - s * s) * xy], -1)
 
 
+@functools.partial(jax.tree_util.register_dataclass, meta_fields=[], data_fields=[
+    "geo", "prop", "Bn", "Bs", "fs_old", "fn0", "failed", "pw", "bolt", "load", "free", "stress",
+    "Kc"])
 @dataclasses.dataclass(frozen=True)
 class _Sub:
-    """Everything fixed during one geometry sub-step (not a pytree: lives inside jit).
+    """Everything fixed during one geometry sub-step (a pytree that lives inside jit).
 
     Contacts: ``geo``, ``prop``, rows ``Bn``, ``Bs`` (S, 2 D), committed shear
     force ``fs_old``, initial normal force ``fn0``, ``failed``, water force
@@ -502,17 +505,21 @@ def bolt_geometry(model: Model, state: State):
     return dict(a=j, b=i, point_a=p2, point_b=p1, e=e)
 
 
-def _prepare(model: Model, state: State, loads: Loads):
+def _prepare(model: Model, state: State, loads: Loads, pairs=None):
     """Detect contacts at the current geometry and carry their history: a sub-step's data.
 
     Returns (mdl, sub, st0, pairs, need): the model with ``free`` restricted to
     the blocks alive now, the :class:`_Sub`, the slots' starting states, the
     pair list and what the contact list needed (``pairs``, ``cell_full``).
+    ``pairs``, if given, is the candidate list already found at this geometry.
     """
     N = model.n_blocks
     free = model.free & state.alive
     mdl = dataclasses.replace(model, free=free)
-    pairs, count, cell_full = broad_phase(mdl, state.verts, state.capacity, state.alive)
+    if pairs is None:
+        pairs, count, cell_full = broad_phase(mdl, state.verts, state.capacity, state.alive)
+    else:
+        count, cell_full = jnp.zeros((), jnp.int32), jnp.zeros((), bool)
     hist = remap_history(state, pairs, N)
     geo = narrow_phase(mdl, state.verts, state.centroid, pairs)
     prop = slot_properties(mdl, geo)
@@ -765,23 +772,45 @@ def _substep_tangent(model: Model, state: State, loads: Loads, new_state: State,
     """Derivatives of one sub-step's new state and snapshot (see :func:`increment_tangent`)."""
     held = new_state.cstate.reshape(-1)
     all_held = jnp.ones(held.shape, bool)
+    p = jax.tree.leaves(dstate)[0].shape[0]
+    mf0, sf0, lf0 = (_fields(model, SMOOTH_MODEL), _fields(state, STATE_FLOATS),
+                     _fields(loads, LOAD_FLOATS))
 
-    def step(mf, sf, lf, x):
+    # Geometry, detection and history (the candidate pairs of this sub-step are
+    # integers: no derivative), differentiated once for all p parameters.
+    def prepare(mf, sf, lf):
         m = dataclasses.replace(model, **mf)
         s = dataclasses.replace(state, **sf)
         ld = dataclasses.replace(loads, **lf)
-        mdl, sub, _, pairs, _ = _prepare(m, s, ld)
-        ev = _evaluate(mdl, sub, x, all_held, held, held, 0.0)
-        new, _, snap = _commit(mdl, s, sub, pairs, x, ev)
+        return _prepare(m, s, ld, new_state.pairs)[1]
+
+    sub = prepare(mf0, sf0, lf0)
+    leaves, tree = jax.tree.flatten(sub)
+    smooth = [jnp.issubdtype(x.dtype, jnp.inexact) for x in leaves]
+    floats = lambda sb: [x for x, f in zip(jax.tree.leaves(sb), smooth, strict=True) if f]  # noqa: E731
+
+    def with_floats(fl):
+        it = iter(fl)
+        return tree.unflatten([next(it) if f else x for x, f in zip(leaves, smooth, strict=True)])
+
+    dsub = jax.vmap(lambda dm, ds, dl: floats(jax.jvp(prepare, (mf0, sf0, lf0),
+                                                      (dm, ds, dl))[1]))(dmodel, dstate, dloads)
+
+    # Equilibrium and commit at fixed geometry, in the held states.
+    def settle(mf, fl, sf, x):
+        m = dataclasses.replace(model, **mf)
+        sb = with_floats(fl)
+        mdl = dataclasses.replace(m, free=sb.free)
+        s = dataclasses.replace(state, **sf)
+        ev = _evaluate(mdl, sb, x, all_held, held, held, 0.0)
+        new, _, snap = _commit(mdl, s, sb, new_state.pairs, x, ev)
         return ev["R"], _fields(new, STATE_FLOATS), {k: snap[k] for k in SNAPSHOT_FLOATS}
 
-    primals = (_fields(model, SMOOTH_MODEL), _fields(state, STATE_FLOATS),
-               _fields(loads, LOAD_FLOATS), du)
-    _, lin = jax.linearize(step, *primals)
-    p = jax.tree.leaves(dstate)[0].shape[0]
+    primals = (mf0, floats(sub), sf0, du)
+    _, lin = jax.linearize(settle, *primals)
     none = jax.tree.map(lambda x: jnp.zeros((p,) + x.shape, x.dtype), primals)
-    dR, ds1, dsnap1 = jax.vmap(lin)(dmodel, dstate, dloads, none[3])
-    mdl, sub, _, _, _ = _prepare(model, state, loads)
+    dR, ds1, dsnap1 = jax.vmap(lin)(dmodel, dsub, dstate, none[3])
+    mdl = dataclasses.replace(model, free=sub.free)
     ev = _evaluate(mdl, sub, du, all_held, held, held, 0.0)
     ddu = _tangent_solve(mdl, sub, _tangent_terms(mdl, sub, ev, du), dR)
     ddu = jnp.where(converged, ddu, 0.0)
