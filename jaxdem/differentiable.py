@@ -119,7 +119,10 @@ class Problem:
         if len(set(self.paths)) != len(self.paths):
             raise SceneError("params", "a parameter is named twice")
         for path in self.paths:
-            apply_overrides(scene.data, {path: 0.0})  # refuses a path that does not exist
+            try:
+                apply_overrides(scene.data, {path: 0.0})  # refuses a path that does not exist
+            except SceneError as err:
+                raise SceneError(path, err.problem) from None
         self.model, self.state, self.layout = model_mod.build(scene)
         self.data = scene_data(scene, self.layout)
         self.map = _ParameterMap(scene, self.model, self.layout, self.data, self.paths)
@@ -344,7 +347,7 @@ class _ParameterMap:
             st = scene.stages[int(keys[1])]
             table, stage = st.water_table, st.name
         if table is not None:
-            k = int(keys[3 if sec == "water" else 3])
+            k = int(keys[2] if sec == "water" else keys[3])
             return dict(kind="water", stage=stage, row=k, value=float(table[k][1]))
         raise unsupported
 

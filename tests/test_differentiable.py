@@ -37,7 +37,8 @@ def _slipping_tunnel():
 
 TUNNEL_PARAMS = ["joints.set1.kn", "joints.set1.ks", "joints.set2.friction_deg",
                  "materials.rock.E", "materials.rock.nu", "in_situ.k0", "in_situ.surface_y",
-                 "bolts.0.stiffness", "supports.0.pressure", "water.table.1.1"]
+                 "bolts.0.stiffness", "supports.0.pressure", "water.table.0.1",
+                 "water.table.1.1"]
 
 
 @pytest.fixture(scope="module")
