@@ -21,23 +21,24 @@ below the target, and the wall time to get there.
 from __future__ import annotations
 
 import argparse
+import functools
 import platform
 import sys
 import time
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import scipy.optimize
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
+from scenes import jointed_tunnel  # noqa: E402
+
 import jaxdem  # noqa: E402
 from inverse import Observation, back_analyse  # noqa: E402
 from jaxdem.differentiable import Problem  # noqa: E402
 from jaxdem.scene import parse_scene  # noqa: E402
-from scenes import jointed_tunnel  # noqa: E402
 
 CASES = {
     2: {"joints.set1.kn": (2.0e6, 4.0e6), "joints.set1.ks": (5.0e5, 2.5e5)},
@@ -107,35 +108,15 @@ def run_case(p, target, max_solves):
     t_plain, t_sens = gradient_cost(ref, ref.theta0)
     ratio = t_sens / t_plain
 
-    # 1. implicit gradients, L-BFGS.
-    problem = fresh()
-    hit = {}
-    t0 = time.perf_counter()
-
-    def progress(event, problem=problem, t0=t0, hit=hit):
-        if "solves" not in hit and event["misfit"] <= target:
-            hit.update(solves=dict(problem.solves), time=time.perf_counter() - t0,
-                       misfit=event["misfit"])
-
-    fit = back_analyse(scene(start), obs, fit=paths, forward=(problem.function(),
-                                                              problem.theta0),
-                       progress=progress, max_iterations=100, tolerance=1e-10)
-    rows.append(("gradient", hit, fit, problem, ratio))
-
-    # 2. the same optimiser with central finite-difference gradients.
-    problem = fresh()
-    hit = {}
-    f_fd = _finite_difference_function(problem)
-    t0 = time.perf_counter()
-
-    def progress_fd(event, problem=problem, t0=t0, hit=hit):
-        if "solves" not in hit and event["misfit"] <= target:
-            hit.update(solves=dict(problem.solves), time=time.perf_counter() - t0,
-                       misfit=event["misfit"])
-
-    fit = back_analyse(scene(start), obs, fit=paths, forward=(f_fd, problem.theta0),
-                       progress=progress_fd, max_iterations=100, tolerance=1e-10)
-    rows.append(("finite diff", hit, fit, problem, ratio))
+    # 1. implicit gradients, L-BFGS; 2. the same with central finite differences.
+    for name in ("gradient", "finite diff"):
+        problem = fresh()
+        jac = None if name == "gradient" else functools.partial(_finite_differences, problem)
+        hit, progress = _tracker(problem, target)
+        fit = back_analyse(scene(start), obs, fit=paths,
+                           forward=(problem.function(jac), problem.theta0),
+                           progress=progress, max_iterations=100, tolerance=1e-10)
+        rows.append((name, hit, fit, problem, ratio))
 
     # 3. Nelder-Mead on log(theta).
     problem = fresh()
@@ -165,34 +146,28 @@ def _simplex(p):
     return np.vstack([np.zeros(p), 0.2 * np.eye(p)])
 
 
-def _finite_difference_function(problem, rel=1e-4):
-    """f with its Jacobian from central differences of plain solves (2 p per Jacobian)."""
-    n, p = len(problem.keys), len(problem.paths)
+def _tracker(problem, target):
+    """(record, progress callback): the solves and time when the misfit first met the target."""
+    hit = {}
+    t0 = time.perf_counter()
 
-    def jacobian(theta):
-        theta = np.asarray(theta, float)
-        y, _ = problem.evaluate(theta)
-        J = np.empty((n, p))
-        for i in range(p):
-            e = np.zeros(p)
-            e[i] = rel * abs(theta[i])
-            J[:, i] = (problem.evaluate(theta + e)[0] - problem.evaluate(theta - e)[0]) / (2 * e[i])
-        return y, J
+    def progress(event):
+        if "solves" not in hit and event["misfit"] <= target:
+            hit.update(solves=dict(problem.solves), time=time.perf_counter() - t0,
+                       misfit=event["misfit"])
 
-    out = jax.ShapeDtypeStruct((n,), jnp.float64)
-    jac = jax.ShapeDtypeStruct((n, p), jnp.float64)
+    return hit, progress
 
-    @jax.custom_jvp
-    def flat(theta):
-        return jax.pure_callback(lambda t: problem.evaluate(t)[0], out, theta,
-                                 vmap_method="sequential")
 
-    @flat.defjvp
-    def flat_jvp(primals, tangents):
-        y, J = jax.pure_callback(jacobian, (out, jac), primals[0], vmap_method="sequential")
-        return y, J @ tangents[0]
-
-    return lambda theta: problem.unflatten(flat(jnp.asarray(theta, jnp.float64)))
+def _finite_differences(problem, theta, rel=1e-4):
+    """Values and Jacobian from central differences of plain solves (2 p solves)."""
+    y, _ = problem.evaluate(theta)
+    J = np.empty((y.size, theta.size))
+    for i in range(theta.size):
+        e = np.zeros(theta.size)
+        e[i] = rel * abs(theta[i])
+        J[:, i] = (problem.evaluate(theta + e)[0] - problem.evaluate(theta - e)[0]) / (2 * e[i])
+    return y, J
 
 
 def main(argv=None):
@@ -222,10 +197,10 @@ def main(argv=None):
                 solves = f"{problem.solves.get('value', 0)}+{problem.solves.get('jacobian', 0)}s"
                 tail = f"{'not reached':>10} {'':>7} {'':>10}"
             if isinstance(fit, float):
-                err = "(min misfit %.2e)" % fit
+                err = f"(min misfit {fit:.2e})"
             else:
                 est = np.array([fit.params[k] for k in CASES[p]])
-                err = "max |rel err| %.1e" % float(np.max(np.abs(est / truth - 1)))
+                err = f"max |rel err| {float(np.max(np.abs(est / truth - 1))):.1e}"
             print(f"{p:>2} {name:<12} {solves:>15} {tail}  {err}")
 
 

@@ -189,7 +189,7 @@ class Problem:
         return y, J, info
 
     def _monitors(self, d):
-        """{monitor: (2,) or (1,)} values and {monitor: (p, 2) or (p, 1)} derivatives of a driver."""
+        """{monitor: (2,) or (1,)} readings and {monitor: (p, 2) or (p, 1)} derivatives."""
         now = {k: getattr(d.state, k) for k in ("centroid", "rot", "strain")}
         ref = None if d.ref is None else {k: getattr(d.ref, k) for k in now}
         if d.dstate is None:
@@ -217,8 +217,12 @@ class Problem:
 
     # -- the JAX function --------------------------------------------------
 
-    def function(self):
-        """f(theta) -> {monitor: value} (or {stage: {monitor: value}}), a jax.custom_jvp."""
+    def function(self, jacobian=None):
+        """f(theta) -> {monitor: value} (or {stage: {monitor: value}}), a jax.custom_jvp.
+
+        ``jacobian``: optional host function theta -> (values, Jacobian) that replaces
+        the solve with sensitivities (the benchmarks use finite differences).
+        """
         n, p = len(self.keys), len(self.paths)
         out = jax.ShapeDtypeStruct((n,), jnp.float64)
         jac = jax.ShapeDtypeStruct((n, p), jnp.float64)
@@ -227,6 +231,8 @@ class Problem:
             return self.evaluate(theta, False)[0]
 
         def values_and_jacobian(theta):
+            if jacobian is not None:
+                return jacobian(np.asarray(theta, float))
             return self.evaluate(theta, True)
 
         @jax.custom_jvp
@@ -250,7 +256,7 @@ class Problem:
     def unflatten(self, y):
         """The flat monitor vector as {monitor: value} (or {stage: {monitor: value}})."""
         groups: dict = {}
-        for i, (stage, name, comp) in enumerate(self.keys):
+        for i, (stage, name, _) in enumerate(self.keys):
             groups.setdefault(stage, {}).setdefault(name, []).append(i)
         out = {stage: {name: (y[idx[0]] if len(idx) == 1 else y[jnp.asarray(idx)])
                        for name, idx in mons.items()} for stage, mons in groups.items()}

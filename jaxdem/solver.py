@@ -826,7 +826,10 @@ _COMPILED: dict = {}
 
 
 def _compiled(fn, *args):
-    """``fn`` (jitted) compiled for these argument shapes and static settings, and the compile time (s)."""
+    """``fn`` (jitted) compiled for these argument shapes and static settings; compile time (s).
+
+    One compilation per shape: the samples of a sweep and the iterations of a
+    back-analysis reuse it."""
     leaves, tree = jax.tree.flatten(args)
     key = (fn, tree, tuple((x.shape, str(x.dtype)) for x in leaves))
     if key in _COMPILED:
@@ -1063,7 +1066,9 @@ def _release_with_tangent(centroid, snap, removed, dcentroid, dsnap, ndof):
 @functools.partial(jax.jit, static_argnames=("mode",))
 def _preload_tangent(model: Model, state: State, loads: Loads, args, dmodel, dloads, dargs,
                      mode: str):
-    """Derivatives (p, ...) of the in-situ state of :func:`_preload`; args = (sigma, surface_y, gamma, k0)."""
+    """Derivatives (p, ...) of the in-situ state of :func:`_preload`.
+
+    args = (sigma, surface_y, gamma, k0) and dargs their derivatives (p, ...)."""
     def pre(mf, lf, a):
         m = dataclasses.replace(model, **mf)
         ld = dataclasses.replace(loads, **lf)
@@ -1138,7 +1143,7 @@ class _Driver:
         return self.status == Status.CONVERGED
 
     def release(self, removed):
-        """Forces (1 + p, N, D) of the blocks being removed on the rest (last increment's contacts)."""
+        """Forces (1 + p, N, D) of the blocks being removed on the rest, from the last contacts."""
         N, D = self.model.n_blocks, self.model.ndof
         out = np.zeros((1 + self.data.p, N, D))
         if not removed.any() or self.info is None:
