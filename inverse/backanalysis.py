@@ -101,7 +101,7 @@ again for points it has seen, and the final analysis asks for the accepted one."
 
 COMPONENTS = ("ux", "uy")
 """Components of a point monitor's displacement [ux, uy] (m) that can be observed."""
-OPTIMIZERS = ("lbfgs", "adam")
+OPTIMIZERS = ("lbfgs", "adam", "gauss-newton")
 
 # Statuses of a fit; ``BackAnalysis.converged`` is True for the first only.
 CONVERGED = "converged"
@@ -747,6 +747,62 @@ def _run_adam(objective: _Objective, z0: np.ndarray, max_iterations: int, tolera
     return _Run(best_z, history, k, status, message)
 
 
+LM_DAMPING = 1.0e-3
+"""Starting Levenberg-Marquardt damping (relative to the diagonal of J^T J); divided by
+3 after a step that lowers the misfit, multiplied by 10 after one that does not."""
+
+
+def _run_gauss_newton(objective: _Objective, z0: np.ndarray, max_iterations: int,
+                      tolerance: float, report: Callable) -> _Run:
+    """Levenberg-Marquardt on the weighted residuals r(z) = (y - observed) / std.
+
+    Every solve gives the whole Jacobian of the observations (forward-mode
+    sensitivities), so the misfit's Gauss-Newton model is free: the step solves
+    (J^T J + lambda diag(J^T J)) dz = -J^T r in z-space. Each trial point costs one
+    solve with sensitivities; a trial that does not lower the misfit (or has no
+    equilibrium) is refused and the damping raised. Not optax: the least-squares
+    structure is what makes it converge in a handful of solves.
+    """
+    def weighted(z):
+        y, jac = objective.evaluate(objective.transform.theta(z), derivatives=True)
+        if not _finite_entry((y, jac)):
+            return None, None
+        r = (y - objective.observed) / objective.std
+        return r, (jac / objective.std[:, None]) * objective.transform.dtheta_dz(z)
+
+    z = np.asarray(z0, dtype=np.float64)
+    r, Jz = weighted(z)
+    if r is None:
+        report(0, z, math.inf, np.zeros_like(z))
+        return _Run(z, [math.inf], 0, NO_EQUILIBRIUM_AT_START, _NO_START)
+    value = 0.5 * float(r @ r)
+    history = [value]
+    report(0, z, value, Jz.T @ r)
+    damping = LM_DAMPING
+    status, message = MAX_ITERATIONS, _limit_message(max_iterations)
+    k = 0
+    for k in range(1, max_iterations + 1):
+        A, g = Jz.T @ Jz, Jz.T @ r
+        while True:
+            step = np.linalg.solve(A + damping * np.diag(np.maximum(np.diag(A), 1e-30)), -g)
+            r_new, J_new = weighted(z + step)
+            if r_new is not None and 0.5 * float(r_new @ r_new) < value:
+                break
+            damping *= 10.0
+            if damping > 1e12:
+                return _Run(z, history, k - 1, LINE_SEARCH_FAILED, _STUCK)
+        previous, z, r, Jz = value, z + step, r_new, J_new
+        value = 0.5 * float(r @ r)
+        damping = max(damping / 3.0, 1e-12)
+        history.append(value)
+        report(k, z, value, Jz.T @ r)
+        done = _settled(previous, value, float(np.linalg.norm(Jz.T @ r)), tolerance)
+        if done:
+            status, message = CONVERGED, done
+            break
+    return _Run(z, history, k, status, message)
+
+
 _NO_START = ("the model has no equilibrium at the starting parameters (the forward solve "
              "returned NaN): start from values at which `jaxdem run` converges")
 _STUCK = ("the line search found no step that lowers the misfit (every trial point was worse "
@@ -909,7 +965,8 @@ def back_analyse(
       fit: dotted paths of the parameters to fit (``"joints.set1.kn"``).
       bounds: {path: (lo, hi)} in file units; default [theta0 / 100, theta0 * 100]
         for a positive theta0, required otherwise.
-      optimizer: "lbfgs" (optax L-BFGS, zoom line search) or "adam".
+      optimizer: "lbfgs" (optax L-BFGS, zoom line search), "adam" (optax), or
+        "gauss-newton" (Levenberg-Marquardt on the observations' Jacobian: fewest solves).
       max_iterations: most optimiser iterations (0: analyse the starting point).
       tolerance: of the stopping rule above.
       learning_rate: Adam's step in z-space (``ADAM_LEARNING_RATE``); unused by L-BFGS.
@@ -983,6 +1040,8 @@ def back_analyse(
     z0 = _start(theta0, transform)
     if optimizer == "lbfgs":
         run = _run_lbfgs(objective, z0, int(max_iterations), tolerance, report)
+    elif optimizer == "gauss-newton":
+        run = _run_gauss_newton(objective, z0, int(max_iterations), tolerance, report)
     else:
         run = _run_adam(objective, z0, int(max_iterations), tolerance, learning_rate, report)
     return _analyse(run, theta0, objective, transform, paths, observations, optimizer)

@@ -6,7 +6,7 @@
     jaxdem run   SCENE.toml [--out DIR] [--set PATH=VALUE ...]  # solve, write results
     jaxdem check SCENE.toml [--out DIR]                         # validate, draw blocks
     jaxdem back-analyse SCENE.toml --observed FILE.csv --fit PATH [--fit PATH ...]
-           [--bounds PATH=LO:HI ...] [--optimizer lbfgs|adam] [--max-iterations N]
+           [--bounds PATH=LO:HI ...] [--optimizer lbfgs|adam|gauss-newton] [--max-iterations N]
            [--out DIR] [--set PATH=VALUE ...]                   # fit parameters to measurements
 
 Exit status: 0 when solved (stable or not: a mechanism is an answer), 2 on
@@ -474,8 +474,9 @@ def _parser() -> argparse.ArgumentParser:
         metavar="PATH=LO:HI",
         help="bounds of a fitted parameter (default theta0/100 to theta0*100 when positive)",
     )
-    back.add_argument("--optimizer", choices=("lbfgs", "adam"), default="lbfgs",
-                      help="lbfgs (default) or adam")
+    back.add_argument("--optimizer", choices=("lbfgs", "adam", "gauss-newton"),
+                      default="lbfgs", help="lbfgs (default), adam or gauss-newton "
+                      "(Levenberg-Marquardt: fewest solves)")
     back.add_argument("--max-iterations", type=int, default=50, metavar="N",
                       help="most optimiser iterations (default 50)")
     back.add_argument(

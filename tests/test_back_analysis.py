@@ -47,8 +47,10 @@ def _observations(values, noise=None):
     return out
 
 
-def test_recovers_joint_stiffness_without_noise(measured):
-    fit = back_analyse(_scene(START), _observations(measured), fit=list(TRUE))
+@pytest.mark.parametrize("optimizer", ["lbfgs", "gauss-newton"])
+def test_recovers_joint_stiffness_without_noise(measured, optimizer):
+    fit = back_analyse(_scene(START), _observations(measured), fit=list(TRUE),
+                       optimizer=optimizer)
     assert fit.converged, fit.message
     for path, true in TRUE.items():
         assert fit.params[path] == pytest.approx(true, rel=0.01)

@@ -230,6 +230,23 @@ def test_adam_reaches_the_lbfgs_estimate(scene):
     assert adam.evaluations["gradient"] > lbfgs.evaluations["gradient"]
 
 
+def test_gauss_newton_reaches_the_lbfgs_estimate_in_fewer_solves(scene):
+    observed = exact_observations(tunnel, TRUE)
+    lbfgs = fit(scene, observed)
+    gn = fit(scene, observed, optimizer="gauss-newton")
+    assert gn.converged, gn.message
+    for path in (KN, KS):
+        assert gn.params[path] == pytest.approx(lbfgs.params[path], rel=1e-4)
+    assert gn.evaluations["gradient"] < lbfgs.evaluations["gradient"]
+
+
+def test_gauss_newton_refuses_steps_into_points_without_equilibrium(scene):
+    result = fit(scene, exact_observations(tunnel, TRUE), f=mechanism_below(1.6e6),
+                 start=[2e7, 1e6], optimizer="gauss-newton")
+    assert result.converged, result.message
+    assert np.all(np.abs(relative_error(result, TRUE)) < 0.01)
+
+
 def test_progress_is_called_at_the_start_and_after_each_iteration(scene):
     events = []
     result = fit(scene, exact_observations(tunnel, TRUE), progress=events.append)
