@@ -44,16 +44,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdem import model as model_mod
-from jaxdem.laws import intact_stiffness
+from jaxdem.laws import intact_stiffness, plane_strain_elasticity
+from jaxdem.results import monitor_positions
 from jaxdem.scene import SceneError, apply_overrides
 from jaxdem.solver import (
     SMOOTH_MODEL,
     Data,
     Status,
-    _rotate,
+    _stage_plan,
     run,
     scene_data,
-    strain_times,
 )
 
 #: Parameter paths that f can be differentiated with respect to (NAME, I, K are
@@ -128,7 +128,7 @@ class Problem:
         self.map = _ParameterMap(scene, self.model, self.layout, self.data, self.paths)
         self.theta0 = self.map.theta0
         self.stages = None if stages is None else list(stages)
-        known = ["initial"] + [s["name"] for s in _plan_names(scene)]
+        known = ["initial"] + [s["name"] for s in _stage_plan(scene)]
         for name in self.stages or []:
             if name not in known:
                 raise SceneError("stages", f"no stage named {name!r} (stages: {known})")
@@ -263,12 +263,6 @@ class Problem:
         return out[None] if self.stages is None else out
 
 
-def _plan_names(scene):
-    from jaxdem.solver import _stage_plan
-
-    return _stage_plan(scene)
-
-
 def _monitor_values(layout, now: dict, ref: dict | None) -> dict:
     """{monitor: (2,) displacement [ux, uy] or (1,) convergence} (m), in jax.numpy.
 
@@ -276,9 +270,7 @@ def _monitor_values(layout, now: dict, ref: dict | None) -> dict:
     they differentiate: a point follows its block, c + (I + E) R(rot) offset.
     """
     def positions(m, s):
-        k = np.asarray(m["blocks"])
-        r = _rotate(jnp.asarray(m["offsets"]), s["rot"][k])
-        return s["centroid"][k] + r + strain_times(s["strain"][k], r)
+        return monitor_positions(m, s["centroid"], s["rot"], s["strain"])
 
     out = {}
     for name, m in layout.monitors.items():
@@ -315,6 +307,9 @@ class _ParameterMap:
                 raise SceneError(path, "no such parameter") from None
         self.theta0 = np.array([k["value"] for k in self.kinds], float)
         self.dtype = model.radius.dtype
+        self.blocks = {name: np.array([i for i in range(layout.n_rock)
+                                       if layout.materials[i] == name], int)
+                       for name in scene.materials}
 
     def _kind(self, path):
         scene = self.scene
@@ -421,8 +416,7 @@ class _ParameterMap:
                 field = _JOINT_FIELD[kd["field"]]
                 mf[field] = mf[field].at[jnp.asarray(rows)].set(value)
             elif kind == "material":
-                blocks = np.array([i for i in range(layout.n_rock)
-                                   if layout.materials[i] == kd["name"]], int)
+                blocks = self.blocks[kd["name"]]
                 if kd["field"] in ("E", "nu"):
                     elastic.setdefault(kd["name"], {})[kd["field"]] = x
                 elif kd["field"] == "unit_weight":
@@ -459,16 +453,12 @@ class _ParameterMap:
         for name, ev in elastic.items():
             m = scene.materials[name]
             E, nu = ev.get("E", m.E), ev.get("nu", m.nu)
-            blocks = np.array([i for i in range(layout.n_rock)
-                               if layout.materials[i] == name], int)
+            blocks = self.blocks[name]
             kn_i, ks_i = intact_stiffness(E, nu)
             mf["kn_inv"] = mf["kn_inv"].at[blocks].set(1.0 / kn_i)
             mf["ks_inv"] = mf["ks_inv"].at[blocks].set(1.0 / ks_i)
             if model.ndof == 6:
-                f = E / ((1.0 + nu) * (1.0 - 2.0 * nu))
-                D = f * jnp.array([[1.0 - nu, nu, 0.0], [nu, 1.0 - nu, 0.0],
-                                   [0.0, 0.0, 0.5 - nu]])
-                mf["cell_D"] = mf["cell_D"].at[blocks].set(D)
+                mf["cell_D"] = mf["cell_D"].at[blocks].set(plane_strain_elasticity(E, nu))
         for stage, rows in tables.items():
             table = (scene.water.table if stage is None else
                      next(s.water_table for s in scene.stages if s.name == stage))

@@ -7,7 +7,6 @@ jax.numpy, so they jit, vmap and differentiate.
 from __future__ import annotations
 
 import jax.numpy as jnp
-import numpy as np
 
 from jaxdem.state import OPEN, SLIP, STICK, WALL_ROLLER, Model
 
@@ -23,7 +22,7 @@ def intact_stiffness(E, nu):
 def plane_strain_elasticity(E, nu):
     """Plane-strain elasticity matrix D (kPa): (sx, sy, txy) = D (ex, ey, gxy)."""
     f = E / ((1.0 + nu) * (1.0 - 2.0 * nu))
-    return f * np.array([[1.0 - nu, nu, 0.0], [nu, 1.0 - nu, 0.0], [0.0, 0.0, 0.5 - nu]])
+    return f * jnp.array([[1.0 - nu, nu, 0.0], [nu, 1.0 - nu, 0.0], [0.0, 0.0, 0.5 - nu]])
 
 
 def equivalent_stiffness(h1, h2, k1_inv, k2_inv, k0_inv):

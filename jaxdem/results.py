@@ -16,6 +16,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+import jax.numpy as jnp
 import numpy as np
 
 # Contact spring states, as stored in ``geometry["contacts"]["state"]``.
@@ -131,19 +132,20 @@ def _jsonable(x: Any) -> Any:
 # Building a Result from the solver's final state (host, NumPy)
 
 
-def _rotate(v: np.ndarray, angle: np.ndarray) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    return np.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], axis=-1)
+def monitor_positions(m, centroid, rot, strain):
+    """Current positions of a monitor's material points, c + (I + E) R(rot) offset.
+
+    jax.numpy, so that :mod:`jaxdem.differentiable` differentiates the same readings.
+    """
+    from jaxdem.solver import _rotate, strain_times
+
+    k = np.asarray(m["blocks"])
+    r = _rotate(jnp.asarray(m["offsets"]), rot[k])
+    return centroid[k] + r + strain_times(strain[k], r)
 
 
 def _positions(m, state) -> np.ndarray:
-    """Current positions of a monitor's material points: c + (I + E) R(rot) offset."""
-    from jaxdem.solver import strain_times
-
-    k = np.asarray(m["blocks"])
-    r = _rotate(m["offsets"], np.asarray(state.rot)[k])
-    strained = np.asarray(strain_times(np.asarray(state.strain)[k], r))
-    return np.asarray(state.centroid)[k] + r + strained
+    return np.asarray(monitor_positions(m, state.centroid, state.rot, state.strain))
 
 
 def monitor_values(layout, state, ref=None) -> dict[str, dict[str, Any]]:
