@@ -52,6 +52,7 @@ from jaxdem.solver import (
     Data,
     Status,
     _stage_plan,
+    gravity_material,
     run,
     scene_data,
 )
@@ -423,7 +424,7 @@ class _ParameterMap:
                     area = jnp.asarray(model.area)[blocks]
                     arr["weight"] = arr["weight"].at[blocks, 1].set(-x * area)
                     if scene.in_situ is not None and scene.in_situ.mode == "gravity" and \
-                            _gravity_material(scene, layout) == kd["name"]:
+                            gravity_material(scene, layout) == kd["name"]:
                         arr["gamma"] = x
                 else:
                     row = len(names) + mats.index(kd["name"])
@@ -468,11 +469,6 @@ class _ParameterMap:
             y = jnp.interp(jnp.asarray(data.water_x), jnp.asarray(table, float)[:, 0], ys)
             arr["water_y" if stage is None else f"water:{stage}"] = y
         return mf, arr
-
-
-def _gravity_material(scene, layout):
-    mats = [layout.materials[i] for i in range(layout.n_rock) if layout.excavation[i] is None]
-    return scene.domain.material if scene.domain else mats[0]
 
 
 def _pad(x, p):

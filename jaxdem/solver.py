@@ -720,7 +720,7 @@ def _fields(obj, names) -> dict:
     return {k: getattr(obj, k) for k in names}
 
 
-def _tangent_terms(model: Model, sub: _Sub, ev, du):
+def _tangent_terms(model: Model, sub: _Sub, ev):
     """The exact tangent K = -dR/d(du) with the slots' states held, as terms (a, b, L, R, k).
 
     Per slot, the local derivatives of (fn, fs) with respect to the trial
@@ -742,9 +742,7 @@ def _tangent_terms(model: Model, sub: _Sub, ev, du):
              (a, b, Bs, Bs, ss * ks)]
     if model.n_bolts:
         bolt = sub.bolt
-        elong = jnp.sum(bolt["B"] * _gather(du, bolt["a"], bolt["b"]), axis=1)
-        trial = bolt["f_old"] + model.bolt_k * elong
-        elastic = bolt["active"] & (jnp.abs(trial) <= model.bolt_cap)
+        elastic = bolt["active"] & (ev["bolt_state"] == 0)
         terms.append((bolt["a"], bolt["b"], bolt["B"], bolt["B"],
                       jnp.where(elastic, model.bolt_k, 0.0)))
     return [jnp.concatenate(x) for x in zip(*terms, strict=True)]
@@ -812,7 +810,7 @@ def _substep_tangent(model: Model, state: State, loads: Loads, new_state: State,
     dR, ds1, dsnap1 = jax.vmap(lin)(dmodel, dsub, dstate, none[3])
     mdl = dataclasses.replace(model, free=sub.free)
     ev = _evaluate(mdl, sub, du, all_held, held, held, 0.0)
-    ddu = _tangent_solve(mdl, sub, _tangent_terms(mdl, sub, ev, du), dR)
+    ddu = _tangent_solve(mdl, sub, _tangent_terms(mdl, sub, ev), dR)
     ddu = jnp.where(converged, ddu, 0.0)
     _, ds2, dsnap2 = jax.vmap(lin)(*none[:3], ddu)
     add = lambda x, y: jax.tree.map(jnp.add, x, y)  # noqa: E731
@@ -998,6 +996,14 @@ class Data:
         return self.weight.shape[0] - 1
 
 
+def gravity_material(scene, layout) -> str:
+    """The material whose unit weight makes the gravity in-situ stress: the domain's,
+    else that of the first rock block that is not excavated."""
+    if scene.domain is not None:
+        return scene.domain.material
+    return next(layout.materials[i] for i in range(layout.n_rock) if layout.excavation[i] is None)
+
+
 def scene_data(scene, layout) -> Data:
     """The driver's inputs of a scene as built, without derivatives (p = 0)."""
     one = lambda x: np.asarray(x, float)[None]  # noqa: E731
@@ -1008,9 +1014,7 @@ def scene_data(scene, layout) -> Data:
         k0 = in_situ.k0
         sigma = np.array([in_situ.sigma_xx, in_situ.sigma_yy, in_situ.sigma_xy])
         if in_situ.mode == "gravity":
-            mats = [layout.materials[i] for i in range(layout.n_rock)
-                    if layout.excavation[i] is None]
-            name = scene.domain.material if scene.domain else mats[0]
+            name = gravity_material(scene, layout)
             gamma, surface = scene.materials[name].unit_weight, in_situ.surface_y
     water = scene.water
     tables = ([water.table] if water is not None else []) + [
