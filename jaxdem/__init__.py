@@ -11,15 +11,19 @@ files. Compression positive.
     result.to_dict()
 """
 
-import jax
+from jaxdem import config
 
-# float64 by default; a scene may ask for float32 (solver.dtype).
-jax.config.update("jax_enable_x64", True)
+# float64 by default, one OpenBLAS thread, the persistent compilation cache:
+# see jaxdem.config.
+config.configure()
 
+from jaxdem.batch import BatchResult, solve_batch  # noqa: E402
 from jaxdem.differentiable import differentiable  # noqa: E402
 from jaxdem.results import Result  # noqa: E402
 from jaxdem.scene import Scene, SceneError, load_scene  # noqa: E402
 from jaxdem.solver import Status, solve  # noqa: E402
+from jaxdem.sweep import SweepResult, sweep  # noqa: E402
 
-__all__ = ["Result", "Scene", "SceneError", "Status", "differentiable", "load_scene", "solve"]
+__all__ = ["BatchResult", "Result", "Scene", "SceneError", "Status", "SweepResult",
+           "differentiable", "load_scene", "solve", "solve_batch", "sweep"]
 __version__ = "0.1.0"

@@ -5,6 +5,8 @@
     jaxdem demo  [--out DIR]                                   # bundled demo scene
     jaxdem run   SCENE.toml [--out DIR] [--set PATH=VALUE ...]  # solve, write results
     jaxdem check SCENE.toml [--out DIR]                         # validate, draw blocks
+    jaxdem sweep SCENE.toml --vary PATH=LOW:HIGH[:log] [--vary PATH=DIST:ARGS ...] --samples N
+           [--method grid|lhs|mc] [--seed S] [--chunk C] [--out DIR] [--set PATH=VALUE ...]
     jaxdem back-analyse SCENE.toml --observed FILE.csv --fit PATH [--fit PATH ...]
            [--bounds PATH=LO:HI ...] [--optimizer lbfgs|adam|gauss-newton] [--max-iterations N]
            [--out DIR] [--set PATH=VALUE ...]                   # fit parameters to measurements
@@ -41,6 +43,7 @@ SOLVED_STATUSES = ("converged", "mechanism")
 
 DEFAULT_DEMO_OUT = "jaxdem-demo"
 DEFAULT_BACK_ANALYSIS_OUT = "jaxdem-back-analysis"
+DEFAULT_SWEEP_OUT = "jaxdem-sweep"
 
 
 class InputError(Exception):
@@ -149,6 +152,35 @@ def cmd_back_analyse(args: argparse.Namespace) -> int:
     return EXIT_NOT_CONVERGED if result.status == NO_EQUILIBRIUM_AT_START else EXIT_OK
 
 
+def cmd_sweep(args: argparse.Namespace) -> int:
+    """Solve a scene over sampled parameters (batched); write sweep.csv, sweep.json, tornado.png."""
+    path = Path(args.scene)
+    out = Path(args.out)
+    overrides = _parse_overrides([item for group in args.set or [] for item in group])
+    scene = _load(path, overrides)
+
+    from jaxdem.plots import plot_tornado
+    from jaxdem.sweep import Variable, draw, sweep
+
+    variables = [Variable.parse(v) for group in args.vary for v in group]
+    method = args.method or ("grid" if all(v.kind == "range" for v in variables) else "lhs")
+    n = draw(variables, args.samples, method, args.seed).shape[0]
+    print(f"{_scene_name(scene, path)}: {_scene_summary(scene)}")
+    print(f"sweep: {n} samples ({method}, seed {args.seed}) of "
+          + "; ".join(f"{v.path} {v.describe()}" for v in variables))
+    bar = SampleBar()
+    with bar:
+        result = sweep(scene, variables, args.samples, method=method, seed=args.seed,
+                       chunk=args.chunk, progress=bar)
+    written = [result.to_csv(out / "sweep.csv"), _write_json(_finite(result.to_dict()),
+                                                              out / "sweep.json")]
+    if result.tornado:
+        written.append(plot_tornado(result.tornado, out / "tornado.png"))
+    print(_sweep_summary(result))
+    print("wrote " + ", ".join(str(p) for p in written))
+    return EXIT_OK
+
+
 # ---------------------------------------------------------------------------
 # Shared steps
 
@@ -210,6 +242,19 @@ def _parse_bounds(items: Sequence[str]) -> dict[str, tuple[float, float]]:
     return out
 
 
+def _finite(data: Any) -> Any:
+    """NaN and infinities as null, so that the JSON is standard."""
+    import math
+
+    if isinstance(data, dict):
+        return {k: _finite(v) for k, v in data.items()}
+    if isinstance(data, (list, tuple)):
+        return [_finite(v) for v in data]
+    if isinstance(data, float) and not math.isfinite(data):
+        return None
+    return data
+
+
 def _write_json(data: dict[str, Any], path: Path) -> Path:
     import json
 
@@ -224,6 +269,25 @@ def _error(message: str) -> None:
 
 # ---------------------------------------------------------------------------
 # Progress
+
+
+class SampleBar(AbstractContextManager):
+    """Progress over the samples of a sweep, on stderr: ``samples [####------] 256/1024``."""
+
+    def __init__(self, stream: TextIO | None = None, width: int = 20):
+        self.stream = stream if stream is not None else sys.stderr
+        self.width = width
+        self.tty = self.stream.isatty()
+
+    def __call__(self, done: int, total: int) -> None:
+        filled = int(self.width * done / max(total, 1))
+        line = f"samples [{'#' * filled}{'-' * (self.width - filled)}] {done}/{total}"
+        self.stream.write(("\r" + line) if self.tty else line + "\n")
+        self.stream.flush()
+
+    def __exit__(self, *exc: object) -> None:
+        if self.tty:
+            self.stream.write("\n")
 
 
 class ProgressBar(AbstractContextManager):
@@ -380,6 +444,23 @@ def _print_iteration(event: dict[str, Any]) -> None:
     )
 
 
+def _sweep_summary(result: Any) -> str:
+    b, pr = result.batch, result.probability
+    t = b.timing
+    lines = [f"{len(b.stable)} samples: {int(b.converged.sum())} in equilibrium, "
+             f"{pr['unstable']} mechanisms, {pr['undecided']} without an answer "
+             f"({result.mode}: {t['solve_s']:.2f} s solving, {t['compile_s']:.1f} s compiling, "
+             f"{t['chunk']} samples per batch)"]
+    if pr["decided"]:
+        lo, hi = pr["ci95"]
+        lines.append(f"probability of instability {pr['p_unstable']:.3f} "
+                     f"(95% interval {lo:.3f} to {hi:.3f}, {pr['decided']} samples)")
+    for name, bars in result.tornado.items():
+        top = ", ".join(f"{bar['path']} {bar['swing'] * 1e3:+.3g} mm" for bar in bars[:3])
+        lines.append(f"tornado {name}: {top}")
+    return "\n".join(lines)
+
+
 def _back_analysis_summary(result: Any) -> str:
     """Estimates with standard deviations, the misfit, warnings and status."""
     width = max(9, *(len(p) for p in result.paths))
@@ -493,4 +574,41 @@ def _parser() -> argparse.ArgumentParser:
         help="override scene parameters before fitting (repeatable)",
     )
     back.set_defaults(func=cmd_back_analyse)
+
+    sw = sub.add_parser(
+        "sweep",
+        help="solve a scene over sampled parameters (batched)",
+        description="Solve a scene over a grid, Latin hypercube or Monte Carlo sample of its "
+        "parameters, all samples in batches (vmap); write sweep.csv (one row per sample), "
+        "sweep.json (probability of instability, tornado) and tornado.png.",
+    )
+    sw.add_argument("scene", metavar="SCENE.toml")
+    sw.add_argument(
+        "--vary",
+        action="append",
+        nargs="+",
+        required=True,
+        metavar="PATH=SPEC",
+        help="a parameter and its range or distribution: PATH=LOW:HIGH[:log], "
+        "PATH=uniform:LOW:HIGH, PATH=normal:MEAN:SD, PATH=lognormal:MEAN:SD, "
+        "PATH=truncnormal:MEAN:SD:LOW:HIGH (repeatable)",
+    )
+    sw.add_argument("--samples", type=int, required=True, metavar="N",
+                    help="levels per parameter (grid) or number of draws (lhs, mc)")
+    sw.add_argument("--method", choices=("grid", "lhs", "mc"), default=None,
+                    help="grid, lhs (Latin hypercube) or mc (Monte Carlo); default grid when "
+                    "every parameter is a range, else lhs")
+    sw.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    sw.add_argument("--chunk", type=int, default=None, metavar="C",
+                    help="samples per batch (default: as many as fit in memory, at most 256)")
+    sw.add_argument("--out", default=DEFAULT_SWEEP_OUT, metavar="DIR",
+                    help=f"output folder (default {DEFAULT_SWEEP_OUT})")
+    sw.add_argument(
+        "--set",
+        action="append",
+        nargs="+",
+        metavar="PATH=VALUE",
+        help="override scene parameters for every sample (repeatable)",
+    )
+    sw.set_defaults(func=cmd_sweep)
     return parser

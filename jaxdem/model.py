@@ -25,6 +25,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -33,7 +34,8 @@ from jaxdem.laws import intact_stiffness, plane_strain_elasticity
 from jaxdem.state import ROCK, WALL_FIXED, WALL_ROLLER, Model, State, empty_history
 
 _USE_CELLS_ABOVE = 400  # blocks; below this all-pairs boxes are cheaper
-_DENSE_UP_TO = 1800  # unknowns; above this a sparse direct solve
+_DENSE_UP_TO = 600  # unknowns; above this sparse direct (CPU) or iterative (GPU, batches)
+_DENSE_UP_TO_ACCELERATOR = 1800  # unknowns, on a GPU or TPU (not measured here)
 BOND_PENALTY = 100.0
 """Intact bonds between deformable cells: this many times the Hamajima-Kawai spring.
 
@@ -162,10 +164,14 @@ def _pieces(scene, tol) -> list[_Piece]:
     return out
 
 
-def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
+def build(scene, capacity: int | None = None,
+          batched: bool = False) -> tuple[Model, State, Layout]:
     """Lay a validated Scene out as device arrays.
 
     Returns the Model (constants), the initial State and the host Layout.
+    ``batched``: the model will be solved under ``vmap`` (a batch of samples),
+    which the automatic choice of linear solver takes into account
+    (:func:`linear_solver_for`).
     """
     s = scene.solver
     dtype = np.float64 if s.dtype == "float64" else np.float32
@@ -280,7 +286,7 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
     use_cells = N > _USE_CELLS_ABOVE
     margin = 2.0 * step_length
     if capacity is None:
-        capacity = _initial_capacity(verts, nv, free, margin, use_cells)
+        capacity = bucket(_initial_capacity(verts, nv, free, margin, use_cells))
     cell_capacity = _cell_capacity(verts, radius, big, margin) if use_cells else 1
     min_step = min(step_length, 0.25 * float(np.min(radius[:n_rock][free_rock], initial=np.inf)))
     max_substeps = int(math.ceil(max_disp / min_step)) * 3 + 50
@@ -314,7 +320,8 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
         bolt_pullout=jnp.asarray(bolts["pullout"]),
         cell_D=jnp.asarray(cell_D, dtype), bond_penalty=jnp.asarray(BOND_PENALTY, dtype),
         n_blocks=N, n_vertices=V, n_big=len(big), use_cells=use_cells,
-        cell_capacity=cell_capacity, linear_solver=_linear_solver(s.linear_solver, n_rock * D),
+        cell_capacity=cell_capacity, linear_solver=linear_solver_for(s.linear_solver, n_rock * D,
+                                                      batched=batched),
         n_bolts=len(bolts["k"]), has_water=water is not None, ndof=D,
     )
     state = State(
@@ -407,11 +414,45 @@ def _bolts(scene, polys, cents, pieces, tol) -> dict:
     )
 
 
-def _linear_solver(choice: str, unknowns: int) -> str:
-    """The linear solver: the scene's choice, or by size (dense Cholesky is fastest when small)."""
+def linear_solver_for(choice: str, unknowns: int, *, batched: bool = False,
+                      platform: str | None = None) -> str:
+    """The linear solver of the Newton iteration: the scene's ``solver.linear_solver``.
+
+    "auto" decides by size and where the solve runs (BENCHMARKS.md, "Scaling:
+    solver paths"):
+
+    - up to ``_DENSE_UP_TO`` (600) unknowns, 200 rigid blocks: "dense"
+      (Cholesky); on a GPU or TPU up to ``_DENSE_UP_TO_ACCELERATOR`` (1,800).
+      On a 2-core CPU SuperLU is already 1.3 times faster at 576 unknowns
+      and 7 times at 1,788;
+    - above, on a CPU, one scene at a time: "sparse" (SciPy's SuperLU on the
+      host), 4 to 7 times faster than the iterative path at 2,000 to 10,000
+      blocks on a 2-core CPU (3 times at 600 blocks), if with 1.5 times its memory;
+    - above, on a GPU or TPU, or ``batched`` (the model is solved under
+      ``vmap``): "cg", matrix-free preconditioned conjugate gradients, jittable,
+      memory linear in the contacts; the host callback of "sparse" would copy
+      every matrix to the host, and solve batch members one after another.
+
+    Args:
+      choice: "auto", "dense", "sparse" or "cg"; anything but "auto" is kept.
+      unknowns: degrees of freedom of the rock blocks (3 or 6 per block).
+      batched: the model is solved for a batch of samples under ``vmap``.
+      platform: JAX platform ("cpu", "gpu", "tpu"); default the default backend.
+
+    Returns:
+      "dense", "sparse" or "cg".
+
+    Example:
+      >>> linear_solver_for("auto", 30_000, platform="cpu")
+      'sparse'
+    """
     if choice != "auto":
         return choice
-    return "dense" if unknowns <= _DENSE_UP_TO else "sparse"
+    platform = platform or jax.default_backend()
+    accelerator = platform != "cpu"
+    if unknowns <= (_DENSE_UP_TO_ACCELERATOR if accelerator else _DENSE_UP_TO):
+        return "dense"
+    return "cg" if batched or accelerator else "sparse"
 
 
 def _tol_floor(dtype) -> float:
@@ -435,6 +476,18 @@ def _boxes(verts, margin):
     lo = verts.min(1) - 0.5 * margin
     hi = verts.max(1) + 0.5 * margin
     return lo, hi
+
+
+def bucket(n: int) -> int:
+    """The capacity bucket of n: the least 2^k or 3 x 2^(k-1) at or above it.
+
+    Capacities come in these steps (at most 50% head-room) so that a small
+    change in the number of contacts, between the samples of a sweep or the
+    iterations of a back-analysis, does not change an array shape and recompile.
+    """
+    n = max(int(n), 1)
+    k = (n - 1).bit_length()
+    return 3 << (k - 2) if k >= 2 and 3 << (k - 2) >= n else 1 << k
 
 
 def _initial_capacity(verts, nv, free, margin, use_cells) -> int:

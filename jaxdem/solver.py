@@ -37,6 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxdem import model as model_mod
 from jaxdem.contact import broad_phase, narrow_phase, remap_history
 from jaxdem.laws import forces_in_state, mohr_coulomb, slot_properties
 from jaxdem.state import OPEN, SLIP, STICK, Loads, Model, State, grow_capacity
@@ -258,16 +259,47 @@ def _assemble_dense(model: Model, sub: _Sub, a, b, L, Rt, k, diag):
     """sum_m k_m L_m R_m^T + blockdiag(Kc) + diag(diag) as a dense (D N, D N) matrix.
 
     L and Rt (M, 2 D) are the left and right rows of each term over the DOFs of
-    its blocks (a, b); L = Rt for the symmetric iteration matrix.
+    its blocks (a, b); L = Rt for the symmetric iteration matrix. The terms
+    start with whole groups of spring slots (P pairs x 2 sides x V vertices,
+    in the order of ``sub.geo``) and end with the bolts. The 2 V slots of a
+    pair share its two blocks, so they are summed into one (2 D, 2 D) block
+    per pair first (a dense contraction) and only that is scattered: 2 V
+    times fewer scattered entries than one per slot.
     """
     N, D = model.n_blocks, model.ndof
-    Ke = k[:, None, None] * L[:, :, None] * Rt[:, None, :]
-    dofs = jnp.concatenate([D * a[:, None] + jnp.arange(D), D * b[:, None] + jnp.arange(D)],
-                           axis=1)
-    K = jnp.zeros((D * N, D * N), diag.dtype).at[dofs[:, :, None], dofs[:, None, :]].add(Ke)
+    S = sub.geo["a"].shape[0]
+    V = model.n_vertices
+    P = S // (2 * V)
+    T = (k.shape[0] - model.n_bolts) // S
+
+    def by_pair(x):
+        # (T S, 2 D) rows -> (T, P, 2 V, 2 D), ordered (first block, second block) of
+        # the pair: side 1 has its vertex block second, so its halves swap.
+        x = x[:T * S].reshape(T, P, 2, V, 2 * D)
+        swapped = jnp.concatenate([x[..., D:], x[..., :D]], axis=-1)
+        return jnp.concatenate([x[:, :, :1], swapped[:, :, 1:]], axis=2).reshape(
+            T, P, 2 * V, 2 * D)
+
+    Kp = jnp.einsum("tpgi,tpg,tpgj->pij", by_pair(L), k[:T * S].reshape(T, P, 2 * V),
+                    by_pair(Rt))
+    first = a[:S].reshape(P, 2 * V)[:, 0]
+    second = b[:S].reshape(P, 2 * V)[:, 0]
+    # The rest (bolts): a (2 D, 2 D) block per term.
+    a, b, L, Rt, k = a[T * S:], b[T * S:], L[T * S:], Rt[T * S:], k[T * S:]
+    Kp = jnp.concatenate([Kp, k[:, None, None] * L[:, :, None] * Rt[:, None, :]])
+    first, second = jnp.concatenate([first, a]), jnp.concatenate([second, b])
+    # Scatter whole (D, D) blocks into K as (N, N, D, D): contiguous windows,
+    # far cheaper than one scattered scalar per entry, and a batch of them
+    # (vmap) stays cache-friendly.
+    Kp = Kp.reshape(-1, 2, D, 2, D)
+    rows = jnp.concatenate([first, first, second, second])
+    cols = jnp.concatenate([first, second, first, second])
+    blocks = jnp.concatenate([Kp[:, 0, :, 0], Kp[:, 0, :, 1], Kp[:, 1, :, 0], Kp[:, 1, :, 1]])
+    K4 = jnp.zeros((N, N, D, D), diag.dtype).at[rows, cols].add(blocks)
     if sub.Kc is not None:
-        own = D * jnp.arange(N)[:, None] + jnp.arange(D)
-        K = K.at[own[:, :, None], own[:, None, :]].add(sub.Kc)
+        own = jnp.arange(N)
+        K4 = K4.at[own, own].add(sub.Kc)
+    K = K4.transpose(0, 2, 1, 3).reshape(N * D, N * D)
     return K + jnp.diag(diag)
 
 
@@ -339,14 +371,79 @@ def _solve_sparse(model: Model, sub: _Sub, terms, R):
     return x.reshape(R.shape)
 
 
-def _solve_cg(model: Model, sub: _Sub, terms, R):
+# Stopping rule of the iterative solve: the Newton loop's forcing term lies in
+# [min, max] (relative 2-norm residual of CG); min is also the default.
+_CG_RTOL_MIN = {True: 1e-10, False: 1e-5}  # float64, float32
+_CG_RTOL_MAX = 1e-2
+
+
+def _compact_terms(model: Model, terms):
+    """The rank-one terms with k != 0, packed into a fixed capacity (the product's cost).
+
+    A slot list holds 2 V slots per candidate pair, of which a touching pair
+    uses one or two (a corner, or the two ends of a face-to-face contact):
+    the matrix-free product runs over 2 slots per candidate pair instead of
+    2 V, V times fewer. Should more terms be nonzero than that
+    (never seen: it needs more than two springs per pair on average over the
+    padded pair list), the surplus ones are left out of the iteration matrix:
+    it stays symmetric positive definite, Newton's residual still has every
+    spring, and the outer iteration converges, linearly instead of
+    quadratically.
+    """
+    a, b, B, k = terms
+    m = k.shape[0]
+    n_bolt = model.n_bolts
+    cap = min(m, (m - n_bolt) * 2 // max(model.n_vertices * 2, 2) + n_bolt)
+    if cap >= m:
+        return terms
+    (idx,) = jnp.nonzero(k != 0, size=cap, fill_value=0)
+    keep = jnp.arange(cap) < jnp.sum(k != 0)
+    return a[idx], b[idx], B[idx], jnp.where(keep, k[idx], 0.0)
+
+
+def _pcg(matvec, precond, rhs, rtol, maxiter):
+    """Preconditioned conjugate gradients from x = 0 until |r| <= rtol |rhs| (2-norms).
+
+    Returns (x, iterations). ``rtol`` may be traced (an inexact-Newton forcing
+    term). Fixed shapes, one ``lax.while_loop``; vmaps (members stop together).
+    """
+    dot = lambda u, v: jnp.sum(u * v)  # noqa: E731
+    stop = (rtol * jnp.linalg.norm(rhs)) ** 2
+    z = precond(rhs)
+    init = (jnp.zeros_like(rhs), rhs, z, z, dot(rhs, z), jnp.array(0))
+
+    def cond(c):
+        return (dot(c[1], c[1]) > stop) & (c[5] < maxiter)
+
+    def body(c):
+        x, r, z, p, rz, it = c
+        q = matvec(p)
+        pq = dot(p, q)
+        alpha = jnp.where(pq > 0, rz / jnp.where(pq > 0, pq, 1.0), 0.0)
+        x = x + alpha * p
+        r = r - alpha * q
+        z = precond(r)
+        rz_new = dot(r, z)
+        beta = jnp.where(rz > 0, rz_new / jnp.where(rz > 0, rz, 1.0), 0.0)
+        return x, r, z, z + beta * p, rz_new, it + 1
+
+    x, _, _, _, _, it = jax.lax.while_loop(cond, body, init)
+    return x, it
+
+
+def _solve_cg(model: Model, sub: _Sub, terms, R, rtol=None):
     """(K_t + eps M)^-1 R by conjugate gradients, matrix-free, block-Jacobi preconditioned.
 
-    The product K x is a gather/scatter over the springs: cost and memory
-    linear in the number of contacts.
+    The product K x is a gather/scatter over the springs with k != 0 (packed
+    by :func:`_compact_terms`): cost and memory linear in the number of
+    contacts, and no host callback, so it runs on a GPU and batches under
+    vmap. ``rtol`` is the relative residual at which CG stops (2-norm): the
+    Newton loop passes an Eisenstat-Walker forcing term (it corrects what CG
+    leaves; its residual test decides convergence), default 1e-10 (1e-5 in
+    float32, which cannot resolve 1e-10).
     """
     N, nd = model.n_blocks, model.ndof
-    a, b, B, k = terms
+    a, b, B, k = _compact_terms(model, terms)
     pm = jnp.where(sub.free[:, None], model.pseudo_mass, 1.0)
 
     def matvec(x):
@@ -363,16 +460,15 @@ def _solve_cg(model: Model, sub: _Sub, terms, R):
          + jax.ops.segment_sum(block(slice(nd, 2 * nd)), b, N))
     if sub.Kc is not None:
         D = D + sub.Kc
-    D = D + jax.vmap(jnp.diag)(pm)
+    D = jnp.where(sub.free[:, None, None], D, 0.0) + jax.vmap(jnp.diag)(pm)
     Dinv = jnp.linalg.inv(D)
 
     def precond(x):
         return jnp.einsum("nij,nj->ni", Dinv, x)
 
-    # Inexact Newton: the outer iteration corrects what CG leaves; float32
-    # cannot resolve 1e-10.
-    rtol = 1e-10 if R.dtype == jnp.float64 else 1e-5
-    x, _ = jax.scipy.sparse.linalg.cg(matvec, R, M=precond, tol=rtol, maxiter=4 * N + 200)
+    if rtol is None:
+        rtol = _CG_RTOL_MIN[R.dtype == jnp.float64]
+    x, _ = _pcg(matvec, precond, R, rtol, 4 * N * nd + 200)
     return x
 
 
@@ -421,7 +517,18 @@ def _newton(model: Model, sub: _Sub, st0):
         # secant iteration has stalled on a mechanism; take the slip tangent.
         slow = (rnorm > 0.98 * c["rprev"]) & ~jnp.any(changed)
         stall = jnp.where(slow, c["stall"] + 1, 0)
-        ddu = solve(model, sub, _stiffness_terms(model, sub, ev, stall >= 3), ev["R"])
+        terms = _stiffness_terms(model, sub, ev, stall >= 3)
+        if model.linear_solver == "cg":
+            # Inexact Newton (Eisenstat-Walker, choice 2): solve as accurately
+            # as Newton's own progress warrants, and no more accurately than
+            # the tolerance needs (the residual test below still decides).
+            ratio = jnp.where(jnp.isfinite(c["rprev"]), rnorm / c["rprev"], jnp.inf)
+            need = 0.1 * tol / jnp.maximum(jnp.linalg.norm(ev["R"]), jnp.finfo(tol.dtype).tiny)
+            eta = jnp.clip(jnp.maximum(0.9 * ratio**2, need),
+                           _CG_RTOL_MIN[tol.dtype == jnp.float64], _CG_RTOL_MAX)
+            ddu = _solve_cg(model, sub, terms, ev["R"], eta)
+        else:
+            ddu = solve(model, sub, terms, ev["R"])
         t_now = _travel(model, c["du"])
         t_step = _travel(model, ddu)
         room = jnp.maximum(step - t_now, 0.0)
@@ -613,8 +720,12 @@ def _substep(model: Model, state: State, loads: Loads):
     return new_state, du, c, need, balance, snapshot
 
 
-def _increment(model: Model, state: State, loads: Loads, tangents=None):
-    """Geometry sub-steps until equilibrium; with ``tangents``, their sensitivities too."""
+def _increment(model: Model, state: State, loads: Loads, tangents=None, skip=None):
+    """Geometry sub-steps until equilibrium; with ``tangents``, their sensitivities too.
+
+    ``skip`` (a bool scalar) returns ``state`` untouched: a batch member that has
+    already failed, or one that need not be redone, costs no iterations.
+    """
     N = model.n_blocks
     dtype = state.verts.dtype
     _, _, _, _, balance0, snap0 = jax.eval_shape(_substep, model, state, loads)
@@ -653,7 +764,8 @@ def _increment(model: Model, state: State, loads: Loads, tangents=None):
             out.update(dstate=hold(c["dstate"], dstate), dsnapshot=dsnap)
         return out
 
-    init = dict(state=state, status=jnp.array(-1), substeps=jnp.array(0), stuck=jnp.array(0),
+    status0 = jnp.array(-1) if skip is None else jnp.where(skip, Status.CONVERGED, -1)
+    init = dict(state=state, status=status0, substeps=jnp.array(0), stuck=jnp.array(0),
                 iterations=jnp.array(0), travel=jnp.zeros(N, dtype),
                 residual=jnp.array(jnp.inf, dtype), balance=zeros_like(balance0),
                 snapshot=zeros_like(snap0), pairs_needed=jnp.array(0), cell_full=jnp.array(False),
@@ -870,7 +982,7 @@ def run_increment(model: Model, state: State, loads: Loads, tangents: dict | Non
             model = dataclasses.replace(model, cell_capacity=2 * model.cell_capacity)
         need = int(info["pairs_needed"])
         if need > state.capacity:
-            capacity = max(2 * state.capacity, int(1.3 * need) + 16)
+            capacity = model_mod.bucket(max(2 * state.capacity, int(1.3 * need) + 16))
             state = grow_capacity(state, capacity)
             if tangents is not None:
                 tangents = dict(tangents, state=_grow_tangent(tangents["state"], capacity))
@@ -966,6 +1078,7 @@ class Data:
     Entry 0 is the value, entries 1..p its derivatives with respect to p scene
     parameters (p = 0 for a plain solve). The driver only adds and scales these
     arrays, so derivatives follow the values through stages and load steps.
+    For a batch (``jaxdem.batch``) the leading axis holds the samples instead.
 
     Attributes:
       weight, traction: (1 + p, N, D) self-weight and boundary tractions (kN/m).
@@ -1171,7 +1284,7 @@ class _Driver:
             st, overflow = _preload(self.model, self.state, loads, *args, mode=mode)
             if not bool(overflow):
                 break
-            self.state = grow_capacity(self.state, 2 * self.state.capacity)
+            self.state = grow_capacity(self.state, model_mod.bucket(2 * self.state.capacity))
         if self.dstate is not None:
             dargs = tuple(jnp.asarray(x[1:], self.layout.dtype)
                           for x in (data.sigma, data.surface, data.gamma, data.k0))
@@ -1207,7 +1320,6 @@ def solve(scene, set: dict | None = None, progress=None):
         result = jaxdem.solve(scene, set={"joints.base.friction_deg": 25.0})
         print(result.stable, result.monitors)
     """
-    from jaxdem import model as model_mod
     from jaxdem.results import build_result
 
     if set:
@@ -1223,15 +1335,17 @@ def solve(scene, set: dict | None = None, progress=None):
 
 
 def run(scene, model: Model, state: State, layout, data: Data, progress=None,
-        stage_end=None) -> _Driver:
+        stage_end=None, driver=None) -> _Driver:
     """Run a built scene through its loading and stages; returns the finished driver.
 
     ``data`` gives the loads (and, with p > 0, their derivatives, which the
     driver then carries: :class:`Data`). ``stage_end``, if given, is called
     with the driver and the stage name at the end of each stage ("initial"
-    for the state before the first stage).
+    for the state before the first stage). ``driver``, if given, replaces the
+    single-solve :class:`_Driver` (``jaxdem.batch`` passes one that solves a
+    batch of samples, with ``data`` stacked over the samples).
     """
-    d = _Driver(model, state, layout, data, progress)
+    d = driver if driver is not None else _Driver(model, state, layout, data, progress)
     in_situ = scene.in_situ
     N, D = model.n_blocks, model.ndof
     zero = np.zeros((1 + data.p, N, D))

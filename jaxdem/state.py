@@ -98,7 +98,8 @@ class Model:
         (deformable, constant strain: also eps_x, eps_y, gamma_xy).
       use_cells: grid broad phase (else all pairs).
       linear_solver: "dense" (Cholesky), "sparse" (SciPy's sparse LU, on the
-        host) or "cg" (matrix-free conjugate gradients).
+        host) or "cg" (matrix-free conjugate gradients); "auto" is resolved by
+        :func:`jaxdem.model.linear_solver_for`.
       has_water: the scene has a water table (else no pore-pressure code is compiled).
     """
 

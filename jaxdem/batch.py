@@ -1,0 +1,328 @@
+"""Batched solves: one scene, many parameter sets, solved together with ``jax.vmap``.
+
+A scene is built once; each sample changes only parameters that leave the
+block geometry alone (joint and rock properties, in-situ stress, bolts,
+supports, water: the parameters of :mod:`jaxdem.differentiable`). The samples
+then share every array shape, so one compiled increment serves them all: the
+host loop over stages and load steps is the single solve's
+(:func:`jaxdem.solver.run`), and each increment advances every sample at once.
+
+A sample that fails (a mechanism, the iteration limit) is held where it
+stopped and skipped from then on; the others go on. Samples are solved in
+chunks sized to fit memory, padded so that every chunk has the same shape
+(one compilation), and, with several devices, each chunk is split over them
+with ``jax.shard_map`` so that each device iterates its own part to
+convergence without waiting for the others.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import os
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, PartitionSpec
+
+from jaxdem import model as model_mod
+from jaxdem.differentiable import _monitor_values, _ParameterMap
+from jaxdem.scene import SceneError, apply_overrides
+from jaxdem.solver import Data, Status, _compiled, _increment, _preload, _release, run, scene_data
+from jaxdem.state import Loads, grow_capacity
+
+SAMPLE_AXIS = "samples"
+
+
+@dataclasses.dataclass
+class BatchResult:
+    """Outcome of a batch of solves of one scene.
+
+    Attributes:
+      params: the parameter paths, in the column order of ``theta``.
+      theta: (S, p) parameter values of each sample (file units).
+      monitors: monitor name -> (S,) convergence of a section or (S, 2)
+        displacement [ux, uy] of a point (m), at the end of the last stage;
+        NaN where the sample found no equilibrium.
+      status: (S,) :class:`jaxdem.solver.Status` labels of each sample's last increment.
+      stable: (S,) bool, no mechanism was found.
+      converged: (S,) bool, every increment reached equilibrium.
+      iterations: (S,) Newton iterations of each sample, summed over increments.
+      timing: ``build_s``, ``compile_s``, ``solve_s`` (s); ``chunk`` (samples
+        per batch) and ``devices`` (the devices the samples were spread over).
+    """
+
+    params: list
+    theta: np.ndarray
+    monitors: dict
+    status: list
+    stable: np.ndarray
+    converged: np.ndarray
+    iterations: np.ndarray
+    timing: dict
+
+
+def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
+                progress=None) -> BatchResult:
+    """Solve ``scene`` at each row of ``theta`` (values of ``params``), batched.
+
+    Args:
+      scene: a validated scene.
+      params: parameter paths that leave the geometry alone (see :func:`batchable`).
+      theta: (S, p) values, file units (friction in degrees).
+      chunk: samples solved together; default: as many as fit in memory (at
+        most 256), a multiple of the number of devices.
+      devices: devices to shard each chunk over (default: all local devices
+        of the default backend).
+      progress: optional callable, called after each chunk with
+        (samples done, samples in all).
+    Returns:
+      a :class:`BatchResult`.
+    """
+    params = [params] if isinstance(params, str) else list(params)
+    theta = np.asarray(theta, float)
+    if theta.ndim != 2 or theta.shape[1] != len(params):
+        raise SceneError("theta", f"must be (samples, {len(params)}); got {theta.shape}")
+    if not np.all(np.isfinite(theta)):
+        raise SceneError("theta", "holds a NaN or infinite value")
+    for path in params:
+        try:
+            apply_overrides(scene.data, {path: 0.0})
+        except SceneError as err:
+            raise SceneError(path, err.problem) from None
+    t0 = time.perf_counter()
+    # A batch solves under vmap: "auto" then never takes the host sparse solve,
+    # which would run the members one after another (model.linear_solver_for).
+    model, state, layout = model_mod.build(scene, batched=True)
+    data0 = scene_data(scene, layout)
+    pmap = _ParameterMap(scene, model, layout, data0, params)
+    devices = list(devices) if devices is not None else jax.local_devices()
+    n_dev = len(devices)
+    S = theta.shape[0]
+    size = chunk if chunk is not None else _chunk_size(model, state, S, devices)
+    size = max(n_dev, -(-min(size, max(S, 1)) // n_dev) * n_dev)
+    build_s = time.perf_counter() - t0
+
+    values = jax.jit(jax.vmap(pmap._values))
+    read = jax.jit(jax.vmap(functools.partial(_monitor_values, layout)))
+    out_mon: dict = {}
+    status = np.zeros(S, int)
+    iterations = np.zeros(S, int)
+    compile_s = solve_s = 0.0
+    for start in range(0, S, size):
+        rows = np.arange(start, min(start + size, S))
+        # Pad the last chunk with copies of its last sample: one shape, one compilation.
+        take = np.concatenate([rows, np.full(size - len(rows), rows[-1])])
+        fields, arrays = values(jnp.asarray(theta[take], jnp.float64))
+        data = _batch_data(data0, arrays, size)
+        cast = {k: jnp.asarray(v, model.radius.dtype) for k, v in fields.items()}
+        d = _BatchDriver(model, cast, state, layout, data, devices)
+        run(scene, model, state, layout, data, driver=d)
+        compile_s += d.compile_s
+        solve_s += d.solve_s
+        placed = len(d.state.verts.sharding.device_set)
+        n = len(rows)
+        status[rows] = d.status_of[:n]
+        iterations[rows] = d.iterations[:n]
+        keys = ("centroid", "rot", "strain")
+        now = {k: getattr(d.state, k) for k in keys}
+        ref = None if d.ref is None else {k: getattr(d.ref, k) for k in keys}
+        readings = read(now, ref)
+        for name, v in readings.items():
+            v = np.asarray(v, float)[:n]
+            v = v[:, 0] if layout.monitors[name]["kind"] == "section" else v
+            out_mon.setdefault(name, np.full((S,) + v.shape[1:], np.nan))[rows] = v
+        if progress is not None:
+            progress(int(rows[-1]) + 1, S)
+    ok = status == Status.CONVERGED
+    for v in out_mon.values():
+        v[~ok] = np.nan
+    return BatchResult(
+        params=params, theta=theta, monitors=out_mon,
+        status=[Status(int(s)).label for s in status], stable=status != Status.MECHANISM,
+        converged=ok, iterations=iterations,
+        timing=dict(build_s=build_s, compile_s=compile_s, solve_s=solve_s, chunk=size,
+                    devices=placed))
+
+
+def _batch_data(data0: Data, arrays: dict, size: int) -> Data:
+    """The driver's Data with every stack over the samples of a chunk."""
+    np_ = lambda x: np.asarray(x, float)  # noqa: E731
+    tile = lambda x: np.broadcast_to(np_(x[0]), (size,) + np_(x[0]).shape).copy()  # noqa: E731
+    return dataclasses.replace(
+        data0, weight=np_(arrays["weight"]), traction=tile(data0.traction),
+        supports=[np_(arrays[f"support{i}"]) for i in range(len(data0.supports))],
+        sigma=np_(arrays["sigma"]), k0=np_(arrays["k0"]), gamma=np_(arrays["gamma"]),
+        surface=np_(arrays["surface"]), water_y=np_(arrays["water_y"]),
+        stage_water={k: np_(arrays[f"water:{k}"]) for k in data0.stage_water}, dmodel=None)
+
+
+def _chunk_size(model, state, S: int, devices) -> int:
+    """Samples per chunk: what fits in a quarter of the free memory, at most 256.
+
+    Per sample: the state and contact arrays (a few copies inside an
+    increment) and, for the dense solve, the iteration matrix and its factor.
+    """
+    n = model.n_blocks * model.ndof
+    per = 16 * sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(state))
+    if model.linear_solver == "dense":
+        per += 4 * n * n * state.verts.dtype.itemsize
+    free = _free_memory(devices[0])
+    return int(max(1, min(256, S, 0.25 * free * len(devices) // per)))
+
+
+def _free_memory(device) -> float:
+    """Bytes the device can still give (GPU: its allocator's limit; CPU: available RAM)."""
+    stats = device.memory_stats() if hasattr(device, "memory_stats") else None
+    if stats and "bytes_limit" in stats:
+        return float(stats["bytes_limit"] - stats.get("bytes_in_use", 0))
+    try:
+        return float(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return 4e9
+
+
+# ---------------------------------------------------------------------------
+# Batched kernels (one sample per vmap lane; fields = the sample's model fields)
+
+def _member_increment(model, fields, state, loads, skip):
+    return _increment(dataclasses.replace(model, **fields), state, loads, skip=skip)
+
+
+def _increment_lanes(model, fields, state, loads, skip):
+    return jax.vmap(_member_increment, in_axes=(None, 0, 0, 0, 0))(model, fields, state, loads,
+                                                                    skip)
+
+
+@functools.lru_cache(maxsize=8)
+def _increment_fn(devices: tuple):
+    """The jitted batched increment, sharded over ``devices`` when there are several.
+
+    With shard_map each device runs its own while-loop over its own samples,
+    so a slow sample holds back only the samples on its device.
+    """
+    if len(devices) == 1:
+        return jax.jit(_increment_lanes)
+    mesh = Mesh(np.array(devices), (SAMPLE_AXIS,))
+    lanes = PartitionSpec(SAMPLE_AXIS)
+    sharded = jax.shard_map(_increment_lanes, mesh=mesh,
+                            in_specs=(PartitionSpec(), lanes, lanes, lanes, lanes),
+                            out_specs=lanes, check_vma=False)
+    return jax.jit(sharded)
+
+
+@functools.partial(jax.jit, static_argnames=("mode",))
+def _preload_lanes(model, fields, state, loads, args, mode):
+    def one(fl, st, ld, a):
+        return _preload(dataclasses.replace(model, **fl), st, ld, *a, mode=mode)
+
+    return jax.vmap(one)(fields, state, loads, args)
+
+
+@functools.partial(jax.jit, static_argnames=("ndof",))
+def _release_lanes(centroid, snap, removed, ndof):
+    return jax.vmap(lambda c, s: _release(c, s, removed, ndof))(centroid, snap)
+
+
+def _grow(state, capacity: int):
+    return jax.vmap(functools.partial(grow_capacity, capacity=capacity))(state)
+
+
+class _BatchDriver:
+    """The host loop's driver (see :func:`jaxdem.solver.run`) for a chunk of samples.
+
+    It has the single-solve driver's interface; ``status`` is CONVERGED while
+    any sample is still going, so the loop runs until every sample has finished
+    or failed. Each sample's own outcome is in ``status_of``.
+    """
+
+    def __init__(self, model, fields, state, layout, data: Data, devices):
+        C = data.weight.shape[0]
+        self.C, self.devices = C, tuple(devices)
+        self.model, self.fields, self.layout, self.data = model, fields, layout, data
+        self.state = jax.tree.map(lambda x: jnp.broadcast_to(x, (C,) + x.shape), state)
+        self.status_of = np.full(C, int(Status.CONVERGED))
+        self.live = np.ones(C, bool)
+        self.iterations = np.zeros(C, int)
+        self.ref = self.dref = self.dstate = self.info = None
+        self.records: list = []
+        self.bolt_active = np.zeros(model.n_bolts, bool)
+        self.water_y = data.water_y
+        self.compile_s = self.solve_s = 0.0
+        self.approximate = False
+        if C % len(devices) == 0 and len(devices) > 1:
+            sharding = jax.sharding.NamedSharding(Mesh(np.array(devices), (SAMPLE_AXIS,)),
+                                                  PartitionSpec(SAMPLE_AXIS))
+            self.fields = jax.device_put(fields, sharding)
+            self.state = jax.device_put(self.state, sharding)
+
+    @property
+    def status(self) -> Status:
+        if self.live.any():
+            return Status.CONVERGED
+        return Status(int(self.status_of.max()))
+
+    def loads(self, force, water_y=None, water_scale=1.0):
+        wy = self.water_y if water_y is None else water_y
+        C, dtype = self.C, self.model.radius.dtype
+        xs = jnp.asarray(self.data.water_x, dtype)
+        loads = Loads(force=jnp.asarray(force, dtype),
+                      water_x=jnp.broadcast_to(xs, (C,) + xs.shape),
+                      water_y=jnp.asarray(wy, dtype), water_scale=jnp.full(C, water_scale, dtype),
+                      bolt_active=jnp.broadcast_to(jnp.asarray(self.bolt_active),
+                                                   (C, self.model.n_bolts)))
+        return loads, None
+
+    def step(self, stage, k, n, loads):
+        loads = loads[0]
+        fn_jit = _increment_fn(self.devices)
+        while True:
+            skip = jnp.asarray(~self.live)
+            t1 = time.perf_counter()
+            fn, dt = _compiled(fn_jit, self.model, self.fields, self.state, loads, skip)
+            new, info = fn(self.model, self.fields, self.state, loads, skip)
+            status = np.asarray(info["status"])
+            self.compile_s += dt
+            self.solve_s += time.perf_counter() - t1 - dt
+            over = (status == Status.CAPACITY_OVERFLOW) & self.live
+            if not over.any():
+                break
+            if np.asarray(info["cell_full"])[over].any():
+                self.model = dataclasses.replace(self.model,
+                                                 cell_capacity=2 * self.model.cell_capacity)
+            need = int(np.asarray(info["pairs_needed"])[over].max())
+            cap = self.state.capacity
+            if need > cap:
+                self.state = _grow(self.state, model_mod.bucket(max(2 * cap, need)))
+        self.state, self.info = new, info
+        self.iterations += np.where(self.live, np.asarray(info["iterations"]), 0)
+        self.status_of = np.where(self.live, status, self.status_of)
+        self.live &= status == Status.CONVERGED
+        self.records.append(dict(stage=stage, step=k, load_factor=k / n,
+                                 live=int(self.live.sum())))
+        return bool(self.live.any())
+
+    def release(self, removed):
+        N, D = self.model.n_blocks, self.model.ndof
+        if not removed.any() or self.info is None:
+            return np.zeros((self.C, N, D))
+        return np.asarray(_release_lanes(self.state.centroid, self.info["snapshot"],
+                                         jnp.asarray(removed), D))
+
+    def preload(self, scene, base):
+        data, dtype = self.data, self.model.radius.dtype
+        args = tuple(jnp.asarray(x, dtype) for x in (data.sigma, data.surface, data.gamma,
+                                                     data.k0))
+        loads, _ = self.loads(base)
+        while True:
+            st, overflow = _preload_lanes(self.model, self.fields, self.state, loads, args,
+                                          mode=scene.in_situ.mode)
+            if not bool(np.asarray(overflow).any()):
+                break
+            self.state = _grow(self.state, model_mod.bucket(2 * self.state.capacity))
+        self.state = st
+
+
+__all__ = ["BatchResult", "solve_batch"]

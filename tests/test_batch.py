@@ -1,0 +1,159 @@
+"""Batched solves (jaxdem.batch): the same answers as single solves, one compilation per
+shape, capacities in buckets, sharding over devices, the persistent compilation cache."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+from scenes import block_on_incline, jointed_tunnel
+
+import jaxdem
+from jaxdem import solver
+from jaxdem.batch import solve_batch
+from jaxdem.differentiable import Problem
+from jaxdem.model import bucket
+from jaxdem.scene import SceneError, parse_scene
+
+ROOT = Path(__file__).resolve().parents[1]
+TUNNEL_PARAMS = ["joints.set1.kn", "joints.set2.friction_deg", "in_situ.k0",
+                 "bolts.0.stiffness", "supports.0.pressure"]
+
+
+@pytest.fixture(scope="module")
+def tunnel():
+    return parse_scene(jointed_tunnel(spacing=3.5, top="roller"))
+
+
+def test_batch_matches_single_solves(tunnel):
+    """Each sample of a batch is the single solve with those parameters (jointed tunnel
+    with slip, a bolt, a support and water), to the solver's round-off."""
+    theta = np.array([[2.0e6, 30.0, 0.8, 5.0e4, 100.0],
+                      [1.0e6, 22.0, 1.2, 1.0e5, 50.0],
+                      [4.0e6, 38.0, 0.6, 2.0e4, 150.0]])
+    batch = solve_batch(tunnel, TUNNEL_PARAMS, theta)
+    assert batch.converged.all()
+    for i, row in enumerate(theta):
+        single = jaxdem.solve(tunnel, set=dict(zip(TUNNEL_PARAMS, row, strict=True)))
+        assert single.status == batch.status[i]
+        span = single.monitors["span"]["convergence"]
+        assert batch.monitors["span"][i] == pytest.approx(span, rel=1e-8, abs=1e-12)
+        crown = np.array(single.monitors["crown"]["displacement"])
+        np.testing.assert_allclose(batch.monitors["crown"][i], crown, rtol=1e-8, atol=1e-12)
+        assert batch.iterations[i] == sum(sum(s["iterations"]) for s in single.stages)
+
+
+def test_samples_compile_once(tunnel):
+    """A second batch of the same size with other values compiles nothing new."""
+    rng = np.random.default_rng(3)
+    theta = np.column_stack([rng.uniform(1e6, 4e6, 4), rng.uniform(25, 40, 4)])
+    solve_batch(tunnel, TUNNEL_PARAMS[:2], theta, chunk=4)
+    compiled = len(solver._COMPILED)
+    again = solve_batch(tunnel, TUNNEL_PARAMS[:2], theta[::-1] * [1.1, 0.95], chunk=4)
+    assert len(solver._COMPILED) == compiled
+    assert again.timing["compile_s"] == 0.0
+
+
+def test_back_analysis_iterations_compile_once(tunnel):
+    problem = Problem(tunnel, ["joints.set1.kn", "joints.set1.ks"])
+    problem.evaluate(problem.theta0 * 1.1, jacobian=True)
+    compiled = len(solver._COMPILED)
+    problem.evaluate(problem.theta0 * 0.8, jacobian=True)
+    problem.evaluate(problem.theta0 * 1.3)
+    assert len(solver._COMPILED) == compiled
+
+
+def test_failed_samples_are_held_and_reported():
+    """Block on a 25 degree incline: a sample slides (a mechanism) exactly when its joint
+    friction is below the slope (limit equilibrium, tan(phi) = tan(alpha)); the others
+    rest, and a chunk that is padded (5 samples, chunk 4) gives the same answers."""
+    scene = parse_scene(block_on_incline(25.0, 30.0))
+    phi = np.array([15.0, 24.0, 26.0, 30.0, 40.0])
+    batch = solve_batch(scene, ["joints.base.friction_deg"], phi[:, None], chunk=4)
+    np.testing.assert_array_equal(batch.stable, phi > 25.0)
+    assert batch.status == ["mechanism", "mechanism", "converged", "converged", "converged"]
+    assert np.isnan(batch.monitors["block"][:2]).all()
+    assert np.isfinite(batch.monitors["block"][2:]).all()
+    whole = solve_batch(scene, ["joints.base.friction_deg"], phi[:, None], chunk=8)
+    np.testing.assert_allclose(whole.monitors["block"][2:], batch.monitors["block"][2:],
+                               rtol=1e-12)
+
+
+def test_bad_batch_input_is_refused(tunnel):
+    with pytest.raises(SceneError, match="theta"):
+        solve_batch(tunnel, ["joints.set1.kn"], np.array([[1e6], [np.nan]]))
+    with pytest.raises(SceneError, match="theta"):
+        solve_batch(tunnel, ["joints.set1.kn"], np.ones((3, 2)))
+    with pytest.raises(SceneError, match="joints.nope.kn"):
+        solve_batch(tunnel, ["joints.nope.kn"], np.ones((3, 1)))
+    with pytest.raises(SceneError, match="smoothly"):
+        solve_batch(tunnel, ["joints.set1.spacing"], np.ones((3, 1)))
+
+
+@given(st.integers(1, 10**7))
+def test_capacity_buckets(n):
+    """Buckets hold n with at most 50% head-room, and are few: 2^k or 3 x 2^(k-1)."""
+    b = bucket(n)
+    assert n <= b <= max(2, 1.5 * n)
+    k = b.bit_length() - 1
+    assert b == 1 << k or b == 3 << (k - 1)
+    assert bucket(b) == b
+
+
+def _python(code: str, env: dict) -> str:
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env={**os.environ, **env}, cwd=ROOT, timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return out.stdout
+
+
+def test_sweep_samples_shard_over_devices():
+    """With four (forced host) devices each chunk is split over all four, and the answers
+    are those of one device."""
+    code = """
+import json, jax, numpy as np, jaxdem
+from jaxdem.batch import solve_batch
+from jaxdem.scene import parse_scene
+import sys; sys.path.insert(0, "tests")
+from scenes import block_on_incline
+scene = parse_scene(block_on_incline(25.0, 30.0))
+theta = np.linspace(20.0, 35.0, 8)[:, None]
+four = solve_batch(scene, ["joints.base.friction_deg"], theta)
+one = solve_batch(scene, ["joints.base.friction_deg"], theta, devices=jax.devices()[:1])
+print(json.dumps(dict(n=len(jax.devices()), four=four.timing["devices"],
+                      one=one.timing["devices"], stable=[bool(s) for s in four.stable],
+                      same=bool(np.array_equal(four.stable, one.stable)),
+                      diff=float(np.nanmax(np.abs(four.monitors["block"]
+                                                  - one.monitors["block"]))))))
+"""
+    res = json.loads(_python(code, {"XLA_FLAGS": "--xla_force_host_platform_device_count=4",
+                                    "JAXDEM_COMPILATION_CACHE": "0"}).splitlines()[-1])
+    assert res["n"] == 4 and res["four"] == 4 and res["one"] == 1
+    assert res["same"] and res["stable"] == [False] * 3 + [True] * 5
+    assert res["diff"] <= 1e-12
+
+
+def test_persistent_compilation_cache(tmp_path):
+    """A second ``jaxdem run`` of a scene loads its compiled increment from the cache
+    instead of compiling it; JAXDEM_COMPILATION_CACHE=0 writes no cache."""
+    scene = ROOT / "examples" / "block_on_incline.toml"
+
+    def run(out, env):
+        subprocess.run([sys.executable, "-m", "jaxdem", "run", str(scene), "--out", str(out)],
+                       check=True, capture_output=True, env={**os.environ, **env}, cwd=ROOT,
+                       timeout=600)
+        return json.loads((out / "result.json").read_text())["timing"]["compile_s"]
+
+    off = tmp_path / "off"
+    run(tmp_path / "r0", {"JAXDEM_CACHE_DIR": str(off), "JAXDEM_COMPILATION_CACHE": "0"})
+    assert not off.exists() or not any(off.iterdir())
+    cache = tmp_path / "cache"
+    first = run(tmp_path / "r1", {"JAXDEM_CACHE_DIR": str(cache)})
+    assert any(cache.iterdir())
+    second = run(tmp_path / "r2", {"JAXDEM_CACHE_DIR": str(cache)})
+    assert second < 0.3 * first, (first, second)

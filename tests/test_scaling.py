@@ -1,0 +1,114 @@
+"""Linear solver paths: the iterative path against the direct ones, the automatic choice."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scenes import jointed_tunnel, stack
+
+import jaxdem
+from jaxdem import model as model_mod
+from jaxdem import solver
+from jaxdem.scene import parse_scene
+
+
+def _with_solver(d, **kw):
+    d = dict(d)
+    d["solver"] = {**d.get("solver", {}), **kw}
+    return d
+
+
+@pytest.fixture(scope="module")
+def tunnel_solutions():
+    """The small jointed tunnel (two joint sets, in-situ stress, excavation, bolt, water,
+    support pressure) solved with each linear solver."""
+    out = {}
+    for name in ("dense", "sparse", "cg"):
+        r = jaxdem.solve(parse_scene(_with_solver(jointed_tunnel(), linear_solver=name)))
+        assert r.converged, (name, r.status)
+        out[name] = np.array([b["u"] for b in r.blocks])
+    return out
+
+
+@pytest.mark.parametrize("direct", ["dense", "sparse"])
+def test_iterative_path_agrees_with_direct_solves(tunnel_solutions, direct):
+    """CG with the inexact-Newton forcing term reaches the same equilibrium to 1e-7."""
+    u_cg, u_ref = tunnel_solutions["cg"], tunnel_solutions[direct]
+    scale = np.abs(u_ref[:, :2]).max()
+    assert scale > 0
+    np.testing.assert_allclose(u_cg[:, :2], u_ref[:, :2], rtol=0, atol=1e-7 * scale)
+    np.testing.assert_allclose(u_cg[:, 2], u_ref[:, 2], rtol=0,
+                               atol=1e-7 * np.abs(u_ref[:, 2]).max())
+
+
+def test_iterative_path_vmaps():
+    """The matrix-free path has no host callback: a batch of load factors under vmap."""
+    model, state, _ = model_mod.build(parse_scene(_with_solver(stack(3), linear_solver="cg")))
+    assert model.linear_solver == "cg"
+    lams = jnp.array([0.5, 1.0])
+    batch = jax.vmap(lambda lam: solver.make_loads(model, lam * model.f_ext))(lams)
+    states, info = jax.vmap(solver.increment, in_axes=(None, None, 0))(model, state, batch)
+    assert (np.asarray(info["status"]) == solver.Status.CONVERGED).all()
+    dense = dataclasses.replace(model, linear_solver="dense")
+    for k, lam in enumerate(lams):
+        s1, _ = solver.increment(dense, state, solver.make_loads(model, lam * model.f_ext))
+        scale = np.abs(np.asarray(s1.u)).max()
+        np.testing.assert_allclose(np.asarray(states.u[k]), np.asarray(s1.u), rtol=0,
+                                   atol=1e-7 * scale)
+
+
+def test_pcg_and_compaction_match_a_dense_solve():
+    """The packed rank-one terms and PCG give (K + eps M)^-1 R of the assembled matrix."""
+    model, state, _ = model_mod.build(parse_scene(stack(4)))
+    loads = solver.make_loads(model, model.f_ext)
+    mdl, sub, st0, _, _ = solver._prepare(model, state, loads)
+    ev = solver._evaluate(mdl, sub, jnp.zeros_like(loads.force), jnp.zeros_like(st0, bool), st0,
+                          st0, 0.0)
+    terms = solver._stiffness_terms(mdl, sub, ev, False)
+    packed = solver._compact_terms(mdl, terms)
+    assert packed[3].shape[0] < terms[3].shape[0]
+    assert np.isclose(np.sum(np.abs(packed[3])), np.sum(np.abs(terms[3])))
+    x_cg = solver._solve_cg(mdl, sub, terms, ev["R"], 1e-12)
+    x_dense = solver._solve_dense(mdl, sub, terms, ev["R"])
+    np.testing.assert_allclose(np.asarray(x_cg), np.asarray(x_dense), rtol=0,
+                               atol=1e-9 * np.abs(np.asarray(x_dense)).max())
+
+
+@pytest.mark.parametrize("unknowns, platform, batched, expected", [
+    (300, "cpu", False, "dense"), (600, "cpu", False, "dense"), (600, "cpu", True, "dense"),
+    (603, "cpu", False, "sparse"), (1800, "cpu", False, "sparse"),
+    (31_392, "cpu", False, "sparse"), (603, "cpu", True, "cg"), (31_392, "cpu", True, "cg"),
+    (1800, "gpu", False, "dense"), (1800, "gpu", True, "dense"), (1803, "gpu", False, "cg"),
+    (1803, "gpu", True, "cg"), (31_392, "tpu", False, "cg"),
+])
+def test_auto_rule(unknowns, platform, batched, expected):
+    """"auto": dense up to 600 unknowns on a CPU (1,800 on an accelerator); above, sparse
+    direct on a CPU for one scene, matrix-free CG on an accelerator or for a batch
+    (README, Solver)."""
+    got = model_mod.linear_solver_for("auto", unknowns, batched=batched, platform=platform)
+    assert got == expected
+
+
+@pytest.mark.parametrize("choice", ["dense", "sparse", "cg"])
+def test_explicit_choice_is_kept(choice):
+    for unknowns, platform, batched in [(30, "cpu", False), (50_000, "gpu", True)]:
+        assert model_mod.linear_solver_for(choice, unknowns, batched=batched,
+                                           platform=platform) == choice
+
+
+def test_scene_setting_and_batched_keyword_reach_the_model(monkeypatch):
+    scene = stack(3)
+    assert model_mod.build(parse_scene(scene))[0].linear_solver == "dense"
+    for choice in ("sparse", "cg", "dense"):
+        m = model_mod.build(parse_scene(_with_solver(scene, linear_solver=choice)),
+                            batched=True)[0]
+        assert m.linear_solver == choice
+    # A "large" scene: lower the dense limit below this one's 9 unknowns.
+    monkeypatch.setattr(model_mod, "_DENSE_UP_TO", 6)
+    monkeypatch.setattr(model_mod, "_DENSE_UP_TO_ACCELERATOR", 6)
+    large = parse_scene(scene)
+    expected = "sparse" if jax.default_backend() == "cpu" else "cg"
+    assert model_mod.build(large)[0].linear_solver == expected
+    assert model_mod.build(large, batched=True)[0].linear_solver == "cg"

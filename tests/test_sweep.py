@@ -1,0 +1,155 @@
+"""Sweeps (jaxdem.sweep, ``jaxdem sweep``): sampling, the probability of instability
+against a closed form, the tornado, the CSV, reproducibility and refusals."""
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scenes import block_on_incline
+from scipy.special import ndtr
+
+import jaxdem
+from jaxdem.cli import main
+from jaxdem.scene import SceneError, parse_scene
+from jaxdem.sweep import Variable, draw, probability_of_instability, sweep
+
+ALPHA = 30.0
+EXAMPLE = str(Path(__file__).resolve().parents[1] / "examples" / "block_on_incline.toml")
+
+
+@pytest.fixture(scope="module")
+def incline():
+    return parse_scene(block_on_incline(ALPHA, 35.0))
+
+
+@pytest.fixture(scope="module")
+def friction_sweep(incline):
+    return sweep(incline, ["joints.base.friction_deg=normal:33:3"], 120, method="lhs", seed=4)
+
+
+def test_stability_of_each_sample_is_limit_equilibrium(friction_sweep):
+    """A block on a 30 degree incline slides exactly when tan(phi) < tan(30 deg)."""
+    phi = friction_sweep.batch.theta[:, 0]
+    far = np.abs(phi - ALPHA) > 0.1
+    np.testing.assert_array_equal(friction_sweep.batch.stable[far], phi[far] > ALPHA)
+    assert friction_sweep.mode == "batched"
+
+
+def test_probability_of_instability_contains_closed_form(friction_sweep):
+    """phi ~ N(33, 3): P(slide) = P(phi < 30) = Phi(-1) = 0.1587, inside the 95% interval."""
+    pr = friction_sweep.probability
+    assert pr["decided"] == 120 and pr["undecided"] == 0
+    lo, hi = pr["ci95"]
+    assert lo < ndtr(-1.0) < hi
+    assert pr["p_unstable"] == pytest.approx(pr["unstable"] / 120)
+
+
+def test_tornado_is_one_at_a_time(incline):
+    """The tornado's ends are single solves with one parameter at its low or high point:
+    a stiffer joint (kn) settles less, and the swing is their difference."""
+    res = sweep(incline, {"joints.base.kn": "5e5:2e6:log", "joints.base.ks": "2e5:8e5"}, 2)
+    bars = {b["path"]: b for b in res.tornado["block"]}
+    kn = bars["joints.base.kn"]
+    assert (kn["low"], kn["high"]) == pytest.approx((5e5, 2e6))
+    assert kn["base"] == pytest.approx(math.sqrt(5e5 * 2e6))
+    single = jaxdem.solve(incline, set={"joints.base.kn": 2e6, "joints.base.ks": 5e5})
+    assert kn["at_high"] == pytest.approx(np.linalg.norm(single.monitors["block"]["displacement"]),
+                                          rel=1e-9)
+    assert kn["at_low"] > kn["at_high"]
+    assert kn["swing"] == pytest.approx(kn["at_high"] - kn["at_low"])
+    assert res.method == "grid" and res.batch.theta.shape == (4, 2)
+
+
+def test_reproducible_from_seed_and_same_table_as_cli(incline, tmp_path, friction_sweep):
+    again = sweep(incline, ["joints.base.friction_deg=normal:33:3"], 120, method="lhs", seed=4)
+    np.testing.assert_array_equal(again.batch.theta, friction_sweep.batch.theta)
+    other = draw([Variable.parse("joints.base.friction_deg=normal:33:3")], 120, "lhs", seed=5)
+    assert not np.array_equal(other, friction_sweep.batch.theta)
+    out = tmp_path / "out"
+    status = main(["sweep", EXAMPLE, "--vary",
+                   "joints.base.friction_deg=normal:33:3", "--samples", "16", "--seed", "2",
+                   "--out", str(out)])
+    assert status == 0
+    with (out / "sweep.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    py = sweep(jaxdem.load_scene(EXAMPLE),
+               ["joints.base.friction_deg=normal:33:3"], 16, seed=2)
+    assert len(rows) == 16 and list(rows[0]) == py.columns()
+    for row, ref in zip(rows, py.rows(), strict=True):
+        assert float(row["joints.base.friction_deg"]) == ref["joints.base.friction_deg"]
+        assert row["status"] == ref["status"]
+        if ref["converged"]:
+            assert float(row["block.uy"]) == pytest.approx(ref["block.uy"], rel=1e-12)
+    assert (out / "tornado.png").stat().st_size > 0
+    assert (out / "sweep.json").exists()
+
+
+def test_geometry_parameters_fall_back_to_single_solves(incline):
+    """A parameter that changes the model's shape (load steps here) cannot share a batch:
+    the sweep solves its samples one by one and gives the same table."""
+    res = sweep(incline, ["solver.load_steps=1:2"], 2, tornado=False)
+    assert res.mode == "loop"
+    assert res.batch.converged.all() and list(res.batch.theta[:, 0]) == [1.0, 2.0]
+
+
+def test_sampling_methods():
+    v = [Variable.parse("a.b=0:1"), Variable.parse("c.d=10:1000:log")]
+    grid = draw(v, 3, "grid")
+    assert grid.shape == (9, 2)
+    assert sorted(set(grid[:, 1])) == pytest.approx([10.0, 100.0, 1000.0])
+    lhs = draw(v, 50, "lhs", seed=1)
+    # One sample in each of the 50 equal-probability strata of every variable.
+    assert sorted(np.floor(lhs[:, 0] * 50).astype(int)) == list(range(50))
+    u = (np.log(lhs[:, 1]) - np.log(10)) / (np.log(1000) - np.log(10))
+    assert sorted(np.floor(u * 50).astype(int)) == list(range(50))
+    mc = draw([Variable.parse("x.y=lognormal:2e6:5e5"), Variable.parse("x.z=normal:30:2"),
+               Variable.parse("x.w=truncnormal:30:5:25:32")], 100_000, "mc", seed=0)
+    assert mc[:, 0].mean() == pytest.approx(2e6, rel=0.01)
+    assert mc[:, 0].std() == pytest.approx(5e5, rel=0.02)
+    assert mc[:, 1].mean() == pytest.approx(30, abs=0.03)
+    assert mc[:, 1].std() == pytest.approx(2, rel=0.02)
+    assert mc[:, 2].min() >= 25 and mc[:, 2].max() <= 32
+
+
+def test_wilson_interval():
+    """Wilson score interval at 95%: 0 of 10 gives [0, 0.2775]; 5 of 10 gives
+    [0.2366, 0.7634] (Newcombe 1998, table I)."""
+    class B:
+        def __init__(self, stable):
+            self.stable = np.array(stable)
+            self.converged = self.stable.copy()
+
+    lo, hi = probability_of_instability(B([True] * 10))["ci95"]
+    assert lo == 0.0 and hi == pytest.approx(0.2775, abs=1e-4)
+    lo, hi = probability_of_instability(B([True] * 5 + [False] * 5))["ci95"]
+    assert (lo, hi) == pytest.approx((0.2366, 0.7634), abs=1e-4)
+
+
+@pytest.mark.parametrize("spec, match", [
+    ("joints.base.kn", "PATH=LOW:HIGH"),
+    ("joints.base.kn=2e6:1e6", "LOW must be below HIGH"),
+    ("joints.base.kn=-1:1e6:log", "LOW > 0"),
+    ("joints.base.kn=normal:1e6", "normal takes 2 numbers"),
+    ("joints.base.kn=normal:1e6:0", "standard deviation"),
+    ("joints.base.kn=lognormal:-1:3", "mean > 0"),
+    ("joints.base.kn=1e6:abc", "not a number"),
+    ("joints.base.kn=nan:1e6", "NaN"),
+])
+def test_bad_vary_is_refused(spec, match):
+    with pytest.raises(SceneError, match=match) as err:
+        Variable.parse(spec)
+    assert "--vary" in str(err.value)
+
+
+def test_draws_the_scene_refuses_are_refused_before_solving(incline, capsys):
+    """A normal kn wide enough to draw a negative stiffness is refused, naming the path."""
+    with pytest.raises(SceneError, match="joints.base.kn.*refuses"):
+        sweep(incline, ["joints.base.kn=normal:1e6:1e6"], 200, seed=0)
+    status = main(["sweep", EXAMPLE, "--vary",
+                   "joints.base.kn=normal:1e6:1e6", "--samples", "200"])
+    assert status == 2
+    assert "joints.base.kn" in capsys.readouterr().err
+    assert main(["sweep", EXAMPLE, "--vary", "joints.nope.kn=1:2",
+                 "--samples", "2"]) == 2
