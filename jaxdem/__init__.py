@@ -19,11 +19,13 @@ config.configure()
 
 from jaxdem.batch import BatchResult, solve_batch  # noqa: E402
 from jaxdem.differentiable import differentiable  # noqa: E402
+from jaxdem.fos import FactorOfSafety, factor_of_safety  # noqa: E402
 from jaxdem.results import Result  # noqa: E402
 from jaxdem.scene import Scene, SceneError, load_scene  # noqa: E402
 from jaxdem.solver import Status, solve  # noqa: E402
 from jaxdem.sweep import SweepResult, sweep  # noqa: E402
 
-__all__ = ["BatchResult", "Result", "Scene", "SceneError", "Status", "SweepResult",
-           "differentiable", "load_scene", "solve", "solve_batch", "sweep"]
+__all__ = ["BatchResult", "FactorOfSafety", "Result", "Scene", "SceneError", "Status",
+           "SweepResult", "differentiable", "factor_of_safety", "load_scene", "solve",
+           "solve_batch", "sweep"]
 __version__ = "0.1.0"

@@ -72,8 +72,9 @@ def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
       scene: a validated scene.
       params: parameter paths that leave the geometry alone (see :func:`batchable`).
       theta: (S, p) values, file units (friction in degrees).
-      chunk: samples solved together; default: as many as fit in memory (at
-        most 256), a multiple of the number of devices.
+      chunk: samples solved together, a multiple of the number of devices;
+        default: on a CPU a few (what stays in cache, see :func:`_chunk_size`),
+        on a GPU as many as fit in memory (at most 1,024 per device).
       devices: devices to shard each chunk over (default: all local devices
         of the default backend).
       progress: optional callable, called after each chunk with
@@ -93,15 +94,14 @@ def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
         except SceneError as err:
             raise SceneError(path, err.problem) from None
     t0 = time.perf_counter()
-    # A batch solves under vmap: "auto" then never takes the host sparse solve,
-    # which would run the members one after another (model.linear_solver_for).
-    model, state, layout = model_mod.build(scene, batched=True)
+    model, state, layout = model_mod.build(scene)
     data0 = scene_data(scene, layout)
     pmap = _ParameterMap(scene, model, layout, data0, params)
     devices = list(devices) if devices is not None else jax.local_devices()
     n_dev = len(devices)
     S = theta.shape[0]
-    size = chunk if chunk is not None else _chunk_size(model, state, S, devices)
+    per_device = _chunk_size(model, state, -(-S // n_dev), devices)
+    size = chunk if chunk is not None else per_device * n_dev
     size = max(n_dev, -(-min(size, max(S, 1)) // n_dev) * n_dev)
     build_s = time.perf_counter() - t0
 
@@ -160,17 +160,24 @@ def _batch_data(data0: Data, arrays: dict, size: int) -> Data:
 
 
 def _chunk_size(model, state, S: int, devices) -> int:
-    """Samples per chunk: what fits in a quarter of the free memory, at most 256.
+    """Samples per chunk (per device).
 
-    Per sample: the state and contact arrays (a few copies inside an
-    increment) and, for the dense solve, the iteration matrix and its factor.
+    On a CPU, few: a chunk whose arrays stay in cache (about 4 MB: the state's
+    arrays and the dense matrix of each sample) is solved fastest per sample.
+    Measured on a 2-core CPU with the 59-block test tunnel (0.5 MB a sample):
+    19 ms a sample in chunks of 4, 21 in 8, 39 in 16, 42 in 64
+    (BENCHMARKS.md, "Throughput"). On a GPU, many: as many as fit in a quarter
+    of its free memory (the state and its copies inside an increment, and the
+    dense matrix and its factor), at most 1,024.
     """
     n = model.n_blocks * model.ndof
-    per = 16 * sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(state))
-    if model.linear_solver == "dense":
-        per += 4 * n * n * state.verts.dtype.itemsize
-    free = _free_memory(devices[0])
-    return int(max(1, min(256, S, 0.25 * free * len(devices) // per)))
+    itemsize = state.verts.dtype.itemsize
+    state_bytes = sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(state))
+    matrix_bytes = n * n * itemsize if model.linear_solver == "dense" else 0
+    if devices[0].platform == "cpu":
+        return int(max(1, min(16, S, 4e6 // (state_bytes + matrix_bytes))))
+    per = 16 * state_bytes + 4 * matrix_bytes
+    return int(max(1, min(1024, S, 0.25 * _free_memory(devices[0]) // per)))
 
 
 def _free_memory(device) -> float:

@@ -7,6 +7,8 @@
     jaxdem check SCENE.toml [--out DIR]                         # validate, draw blocks
     jaxdem sweep SCENE.toml --vary PATH=LOW:HIGH[:log] [--vary PATH=DIST:ARGS ...] --samples N
            [--method grid|lhs|mc] [--seed S] [--chunk C] [--out DIR] [--set PATH=VALUE ...]
+    jaxdem fos SCENE.toml [--out DIR] [--intact] [--tensile] [--trials N] [--tolerance R]
+           [--set PATH=VALUE ...]                               # factor of safety
     jaxdem back-analyse SCENE.toml --observed FILE.csv --fit PATH [--fit PATH ...]
            [--bounds PATH=LO:HI ...] [--optimizer lbfgs|adam|gauss-newton] [--max-iterations N]
            [--out DIR] [--set PATH=VALUE ...]                   # fit parameters to measurements
@@ -19,7 +21,10 @@ figures in every case where the solver returned, so that a failed run can be
 looked at. ``back-analyse`` exits 0 when the fit ran (converged or not, every
 parameter identifiable or not), 3 when the model has no equilibrium at the
 starting parameters; it writes ``back_analysis.json`` in every case, and the
-figures when the fit ran.
+figures when the fit ran. ``fos`` exits 0 when the factor of safety is
+bracketed (or bounded by its limits), 3 when the unstable end of the bracket
+is a trial that stopped at the iteration limit or went non-finite rather
+than a proven mechanism; it writes ``fos.json`` and its figures in both cases.
 
 JAX, the solver and matplotlib are imported inside the commands, so that
 ``jaxdem --help`` answers at once.
@@ -44,6 +49,7 @@ SOLVED_STATUSES = ("converged", "mechanism")
 DEFAULT_DEMO_OUT = "jaxdem-demo"
 DEFAULT_BACK_ANALYSIS_OUT = "jaxdem-back-analysis"
 DEFAULT_SWEEP_OUT = "jaxdem-sweep"
+DEFAULT_FOS_OUT = "jaxdem-fos"
 
 
 class InputError(Exception):
@@ -179,6 +185,40 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     print(_sweep_summary(result))
     print("wrote " + ", ".join(str(p) for p in written))
     return EXIT_OK
+
+
+def cmd_fos(args: argparse.Namespace) -> int:
+    """Factor of safety by strength reduction; write fos.json, mechanism.png and fos.png."""
+    path = Path(args.scene)
+    out = Path(args.out)
+    overrides = _parse_overrides([item for group in args.set or [] for item in group])
+    if args.trials < 2:
+        raise InputError(f"--trials must be an integer >= 2 (got {args.trials})")
+    if not 0 < args.tolerance < float("inf"):
+        raise InputError(f"--tolerance must be a number > 0 (got {args.tolerance})")
+    scene = _load(path, overrides)
+
+    from jaxdem.fos import factor_of_safety, write_outputs
+
+    def report(r: dict[str, Any]) -> None:
+        trials = ", ".join(f"{f:.4g} {s if s != 'converged' else 'stable'}"
+                           for f, s in zip(r["factors"], r["outcomes"], strict=True))
+        lo, hi = (("-" if x is None else f"{x:.5g}") for x in r["bracket"])
+        print(f"round {r['round']}: {trials} -> bracket [{lo}, {hi}]", file=sys.stderr,
+              flush=True)
+
+    print(f"{_scene_name(scene, path)}: {_scene_summary(scene)}")
+    result = factor_of_safety(scene, intact=args.intact, tensile=args.tensile,
+                              trials=args.trials, rtol=args.tolerance, progress=report)
+    written = write_outputs(result, scene, out)
+    print(result.message)
+    if result.mechanism is not None:
+        m = result.mechanism
+        moving = ", ".join(str(i) for i in m["moving_blocks"][:20])
+        print(f"at F = {m['factor']:.5g}: {m['status']}"
+              + (f", moving blocks: {moving}" if moving else ""))
+    print("wrote " + ", ".join(str(p) for p in written))
+    return EXIT_OK if result.decided else EXIT_NOT_CONVERGED
 
 
 # ---------------------------------------------------------------------------
@@ -600,7 +640,8 @@ def _parser() -> argparse.ArgumentParser:
                     "every parameter is a range, else lhs")
     sw.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     sw.add_argument("--chunk", type=int, default=None, metavar="C",
-                    help="samples per batch (default: as many as fit in memory, at most 256)")
+                    help="samples per batch (default: on a CPU a few, what stays in cache; "
+                    "on a GPU as many as fit in memory)")
     sw.add_argument("--out", default=DEFAULT_SWEEP_OUT, metavar="DIR",
                     help=f"output folder (default {DEFAULT_SWEEP_OUT})")
     sw.add_argument(
@@ -611,4 +652,33 @@ def _parser() -> argparse.ArgumentParser:
         help="override scene parameters for every sample (repeatable)",
     )
     sw.set_defaults(func=cmd_sweep)
+
+    fos = sub.add_parser(
+        "fos",
+        help="factor of safety by strength reduction (batched)",
+        description="Divide the joints' tan(phi) and cohesion (with --intact also the intact "
+        "rock's) by trial factors F, solved in batches, and bracket the largest F that is "
+        "still stable; write fos.json, mechanism.png (the solve at the first unstable F) and "
+        "fos.png (the trials). Exit 3 when the unstable end of the bracket is a trial that "
+        "neither converged nor found a mechanism.",
+    )
+    fos.add_argument("scene", metavar="SCENE.toml")
+    fos.add_argument("--out", default=DEFAULT_FOS_OUT, metavar="DIR",
+                     help=f"output folder (default {DEFAULT_FOS_OUT})")
+    fos.add_argument("--intact", action="store_true",
+                     help="also reduce the intact rock's friction and cohesion (materials)")
+    fos.add_argument("--tensile", action="store_true",
+                     help="also divide tensile strengths by F (default: unchanged)")
+    fos.add_argument("--trials", type=int, default=8, metavar="N",
+                     help="factors solved together per round (default 8)")
+    fos.add_argument("--tolerance", type=float, default=0.005, metavar="R",
+                     help="stop when the bracket's relative width is <= R (default 0.005)")
+    fos.add_argument(
+        "--set",
+        action="append",
+        nargs="+",
+        metavar="PATH=VALUE",
+        help="override scene parameters before the reduction (repeatable)",
+    )
+    fos.set_defaults(func=cmd_fos)
     return parser

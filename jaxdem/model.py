@@ -164,14 +164,10 @@ def _pieces(scene, tol) -> list[_Piece]:
     return out
 
 
-def build(scene, capacity: int | None = None,
-          batched: bool = False) -> tuple[Model, State, Layout]:
+def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
     """Lay a validated Scene out as device arrays.
 
     Returns the Model (constants), the initial State and the host Layout.
-    ``batched``: the model will be solved under ``vmap`` (a batch of samples),
-    which the automatic choice of linear solver takes into account
-    (:func:`linear_solver_for`).
     """
     s = scene.solver
     dtype = np.float64 if s.dtype == "float64" else np.float32
@@ -320,8 +316,7 @@ def build(scene, capacity: int | None = None,
         bolt_pullout=jnp.asarray(bolts["pullout"]),
         cell_D=jnp.asarray(cell_D, dtype), bond_penalty=jnp.asarray(BOND_PENALTY, dtype),
         n_blocks=N, n_vertices=V, n_big=len(big), use_cells=use_cells,
-        cell_capacity=cell_capacity, linear_solver=linear_solver_for(s.linear_solver, n_rock * D,
-                                                      batched=batched),
+        cell_capacity=cell_capacity, linear_solver=linear_solver_for(s.linear_solver, n_rock * D),
         n_bolts=len(bolts["k"]), has_water=water is not None, ndof=D,
     )
     state = State(
@@ -414,8 +409,7 @@ def _bolts(scene, polys, cents, pieces, tol) -> dict:
     )
 
 
-def linear_solver_for(choice: str, unknowns: int, *, batched: bool = False,
-                      platform: str | None = None) -> str:
+def linear_solver_for(choice: str, unknowns: int, *, platform: str | None = None) -> str:
     """The linear solver of the Newton iteration: the scene's ``solver.linear_solver``.
 
     "auto" decides by size and where the solve runs (BENCHMARKS.md, "Scaling:
@@ -425,18 +419,21 @@ def linear_solver_for(choice: str, unknowns: int, *, batched: bool = False,
       (Cholesky); on a GPU or TPU up to ``_DENSE_UP_TO_ACCELERATOR`` (1,800).
       On a 2-core CPU SuperLU is already 1.3 times faster at 576 unknowns
       and 7 times at 1,788;
-    - above, on a CPU, one scene at a time: "sparse" (SciPy's SuperLU on the
-      host), 4 to 7 times faster than the iterative path at 2,000 to 10,000
-      blocks on a 2-core CPU (3 times at 600 blocks), if with 1.5 times its memory;
-    - above, on a GPU or TPU, or ``batched`` (the model is solved under
-      ``vmap``): "cg", matrix-free preconditioned conjugate gradients, jittable,
-      memory linear in the contacts; the host callback of "sparse" would copy
-      every matrix to the host, and solve batch members one after another.
+    - above, on a CPU: "sparse" (SciPy's SuperLU on the host), 4 to 7 times
+      faster than the iterative path at 2,000 to 10,000 blocks on a 2-core CPU
+      (3 times at 600 blocks), if with 1.5 times its memory. A batch (solved
+      under ``vmap``, jaxdem.batch) too: its members' factorisations
+      run one after another and finished members are skipped; on the
+      492-block tunnel of bench_scaling.py a batch of 8 took 0.25 s a sample
+      this way against 0.44 with "cg" and 0.60 with "dense" (0.31 for a loop
+      of single solves);
+    - above, on a GPU or TPU: "cg", matrix-free preconditioned conjugate
+      gradients, jittable, memory linear in the contacts; the host callback of
+      "sparse" would copy every matrix to the host.
 
     Args:
       choice: "auto", "dense", "sparse" or "cg"; anything but "auto" is kept.
       unknowns: degrees of freedom of the rock blocks (3 or 6 per block).
-      batched: the model is solved for a batch of samples under ``vmap``.
       platform: JAX platform ("cpu", "gpu", "tpu"); default the default backend.
 
     Returns:
@@ -452,7 +449,7 @@ def linear_solver_for(choice: str, unknowns: int, *, batched: bool = False,
     accelerator = platform != "cpu"
     if unknowns <= (_DENSE_UP_TO_ACCELERATOR if accelerator else _DENSE_UP_TO):
         return "dense"
-    return "cg" if batched or accelerator else "sparse"
+    return "cg" if accelerator else "sparse"
 
 
 def _tol_floor(dtype) -> float:

@@ -280,28 +280,31 @@ def _assemble_dense(model: Model, sub: _Sub, a, b, L, Rt, k, diag):
         return jnp.concatenate([x[:, :, :1], swapped[:, :, 1:]], axis=2).reshape(
             T, P, 2 * V, 2 * D)
 
-    Kp = jnp.einsum("tpgi,tpg,tpgj->pij", by_pair(L), k[:T * S].reshape(T, P, 2 * V),
-                    by_pair(Rt))
+    # Sum over the slots of each pair of k L R^T: elementwise products and a
+    # reduction (XLA fuses them), not P tiny matrix products.
+    kL = (k[:T * S].reshape(T, P, 2 * V)[..., None] * by_pair(L))
+    Kp = jnp.sum(kL[..., :, None] * by_pair(Rt)[..., None, :], axis=(0, 2))
     first = a[:S].reshape(P, 2 * V)[:, 0]
     second = b[:S].reshape(P, 2 * V)[:, 0]
     # The rest (bolts): a (2 D, 2 D) block per term.
     a, b, L, Rt, k = a[T * S:], b[T * S:], L[T * S:], Rt[T * S:], k[T * S:]
     Kp = jnp.concatenate([Kp, k[:, None, None] * L[:, :, None] * Rt[:, None, :]])
     first, second = jnp.concatenate([first, a]), jnp.concatenate([second, b])
-    # Scatter whole (D, D) blocks into K as (N, N, D, D): contiguous windows,
+    # Scatter whole (D, D) blocks into K laid out as (N, D, N, D): whole windows,
     # far cheaper than one scattered scalar per entry, and a batch of them
-    # (vmap) stays cache-friendly.
+    # (vmap) stays cache-friendly. The diagonal goes in the same way.
     Kp = Kp.reshape(-1, 2, D, 2, D)
     rows = jnp.concatenate([first, first, second, second])
     cols = jnp.concatenate([first, second, first, second])
     blocks = jnp.concatenate([Kp[:, 0, :, 0], Kp[:, 0, :, 1], Kp[:, 1, :, 0], Kp[:, 1, :, 1]])
-    K4 = jnp.zeros((N, N, D, D), diag.dtype).at[rows, cols].add(blocks)
+    own = jnp.arange(N)
+    diag_blocks = diag.reshape(N, D)[:, :, None] * jnp.eye(D, dtype=diag.dtype)
     if sub.Kc is not None:
-        own = jnp.arange(N)
-        K4 = K4.at[own, own].add(sub.Kc)
-    K = K4.transpose(0, 2, 1, 3).reshape(N * D, N * D)
-    return K + jnp.diag(diag)
-
+        diag_blocks = diag_blocks + sub.Kc
+    rows, cols = jnp.concatenate([rows, own]), jnp.concatenate([cols, own])
+    blocks = jnp.concatenate([blocks, diag_blocks.astype(blocks.dtype)])
+    K4 = jnp.zeros((N, D, N, D), diag.dtype).at[rows, :, cols, :].add(blocks)
+    return K4.reshape(N * D, N * D)
 
 def _solve_dense(model: Model, sub: _Sub, terms, R):
     """(K_t + eps M)^-1 R by Cholesky on the assembled (D N, D N) matrix."""
@@ -312,17 +315,21 @@ def _solve_dense(model: Model, sub: _Sub, terms, R):
     return jax.scipy.linalg.cho_solve(c, R.reshape(-1)).reshape(R.shape)
 
 
-def _host_sparse_solve(a, b, L, Rt, k, Kc, diag, rhs, symmetric=True):
+def _host_sparse_solve(a, b, L, Rt, k, Kc, diag, rhs, active=True, symmetric=True):
     """Assemble K = sum_m k_m L_m Rt_m^T + blockdiag(Kc) + diag(diag) on the host and solve.
 
     Only terms with k != 0 enter, so the padded slot list costs nothing.
     The factorisation is SciPy's SuperLU (minimum-degree ordering of K + K^T).
     ``rhs`` is (n,) or (n, p). CPU only: on a GPU the matrix would travel to
-    the host (use "cg" there).
+    the host (use "cg" there). ``active`` False returns zeros at once: a batch
+    member whose iteration has finished (vmap runs the loop body for every
+    member until the last one is done) costs no factorisation.
     """
     import scipy.sparse
     import scipy.sparse.linalg
 
+    if not bool(np.asarray(active)):
+        return np.zeros_like(np.asarray(rhs))
     a, b, L, Rt, k, Kc, diag, rhs = (np.asarray(x) for x in (a, b, L, Rt, k, Kc, diag, rhs))
     n = rhs.shape[0]
     D = L.shape[1] // 2
@@ -352,14 +359,15 @@ def _host_sparse_solve(a, b, L, Rt, k, Kc, diag, rhs, symmetric=True):
     return lu.solve(rhs).astype(rhs.dtype)
 
 
-def _solve_sparse(model: Model, sub: _Sub, terms, R):
+def _solve_sparse(model: Model, sub: _Sub, terms, R, active=True):
     """(K_t + eps M)^-1 R by a sparse direct solve (SciPy's SuperLU through a host callback).
 
     Fill-in of a 2D contact graph is mild, so cost and memory grow about
     linearly with the number of blocks, and a direct solve does not slow down
     near a mechanism as an iterative one does. The springs go to the host as
     rank-one terms (12 numbers each, not their 144 matrix entries) and are
-    assembled there; vmap solves batch members one after another.
+    assembled there; vmap solves batch members one after another, and skips
+    those that are not ``active`` (their Newton iteration has finished).
     """
     a, b, B, k = terms
     D = model.ndof
@@ -367,7 +375,8 @@ def _solve_sparse(model: Model, sub: _Sub, terms, R):
     diag = jnp.where(jnp.repeat(sub.free, D), model.pseudo_mass.reshape(-1), 1.0)
     rhs = R.reshape(-1)
     x = jax.pure_callback(_host_sparse_solve, jax.ShapeDtypeStruct(rhs.shape, rhs.dtype),
-                          a, b, B, B, k, Kc, diag, rhs, vmap_method="sequential")
+                          a, b, B, B, k, Kc, diag, rhs, jnp.asarray(active),
+                          vmap_method="sequential")
     return x.reshape(R.shape)
 
 
@@ -527,6 +536,8 @@ def _newton(model: Model, sub: _Sub, st0):
             eta = jnp.clip(jnp.maximum(0.9 * ratio**2, need),
                            _CG_RTOL_MIN[tol.dtype == jnp.float64], _CG_RTOL_MAX)
             ddu = _solve_cg(model, sub, terms, ev["R"], eta)
+        elif model.linear_solver == "sparse":
+            ddu = _solve_sparse(model, sub, terms, ev["R"], ~c["done"])
         else:
             ddu = solve(model, sub, terms, ev["R"])
         t_now = _travel(model, c["du"])
@@ -873,7 +884,7 @@ def _tangent_solve(model: Model, sub: _Sub, terms, rhs):
         Kc = sub.Kc if sub.Kc is not None else jnp.zeros((0, D, D), rhs.dtype)
         x = jax.pure_callback(functools.partial(_host_sparse_solve, symmetric=False),
                               jax.ShapeDtypeStruct(B.shape, B.dtype), a, b, L, Rt, k, Kc, diag,
-                              B, vmap_method="sequential")
+                              B, True, vmap_method="sequential")
     return x.T.reshape(rhs.shape)
 
 

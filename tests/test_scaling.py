@@ -76,34 +76,29 @@ def test_pcg_and_compaction_match_a_dense_solve():
                                atol=1e-9 * np.abs(np.asarray(x_dense)).max())
 
 
-@pytest.mark.parametrize("unknowns, platform, batched, expected", [
-    (300, "cpu", False, "dense"), (600, "cpu", False, "dense"), (600, "cpu", True, "dense"),
-    (603, "cpu", False, "sparse"), (1800, "cpu", False, "sparse"),
-    (31_392, "cpu", False, "sparse"), (603, "cpu", True, "cg"), (31_392, "cpu", True, "cg"),
-    (1800, "gpu", False, "dense"), (1800, "gpu", True, "dense"), (1803, "gpu", False, "cg"),
-    (1803, "gpu", True, "cg"), (31_392, "tpu", False, "cg"),
+@pytest.mark.parametrize("unknowns, platform, expected", [
+    (300, "cpu", "dense"), (600, "cpu", "dense"), (603, "cpu", "sparse"),
+    (1800, "cpu", "sparse"), (31_392, "cpu", "sparse"), (1800, "gpu", "dense"),
+    (1803, "gpu", "cg"), (31_392, "tpu", "cg"),
 ])
-def test_auto_rule(unknowns, platform, batched, expected):
+def test_auto_rule(unknowns, platform, expected):
     """"auto": dense up to 600 unknowns on a CPU (1,800 on an accelerator); above, sparse
-    direct on a CPU for one scene, matrix-free CG on an accelerator or for a batch
-    (README, Solver)."""
-    got = model_mod.linear_solver_for("auto", unknowns, batched=batched, platform=platform)
-    assert got == expected
+    direct on a CPU (one scene or a batch), matrix-free CG on an accelerator (README,
+    Solver)."""
+    assert model_mod.linear_solver_for("auto", unknowns, platform=platform) == expected
 
 
 @pytest.mark.parametrize("choice", ["dense", "sparse", "cg"])
 def test_explicit_choice_is_kept(choice):
-    for unknowns, platform, batched in [(30, "cpu", False), (50_000, "gpu", True)]:
-        assert model_mod.linear_solver_for(choice, unknowns, batched=batched,
-                                           platform=platform) == choice
+    for unknowns, platform in [(30, "cpu"), (50_000, "gpu")]:
+        assert model_mod.linear_solver_for(choice, unknowns, platform=platform) == choice
 
 
-def test_scene_setting_and_batched_keyword_reach_the_model(monkeypatch):
+def test_scene_setting_reaches_the_model(monkeypatch):
     scene = stack(3)
     assert model_mod.build(parse_scene(scene))[0].linear_solver == "dense"
     for choice in ("sparse", "cg", "dense"):
-        m = model_mod.build(parse_scene(_with_solver(scene, linear_solver=choice)),
-                            batched=True)[0]
+        m = model_mod.build(parse_scene(_with_solver(scene, linear_solver=choice)))[0]
         assert m.linear_solver == choice
     # A "large" scene: lower the dense limit below this one's 9 unknowns.
     monkeypatch.setattr(model_mod, "_DENSE_UP_TO", 6)
@@ -111,4 +106,3 @@ def test_scene_setting_and_batched_keyword_reach_the_model(monkeypatch):
     large = parse_scene(scene)
     expected = "sparse" if jax.default_backend() == "cpu" else "cg"
     assert model_mod.build(large)[0].linear_solver == expected
-    assert model_mod.build(large, batched=True)[0].linear_solver == "cg"
