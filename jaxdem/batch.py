@@ -17,6 +17,7 @@ convergence without waiting for the others.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import functools
 import os
@@ -94,9 +95,7 @@ def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
         except SceneError as err:
             raise SceneError(path, err.problem) from None
     t0 = time.perf_counter()
-    model, state, layout = model_mod.build(scene)
-    data0 = scene_data(scene, layout)
-    pmap = _ParameterMap(scene, model, layout, data0, params)
+    model, state, layout, data0, values, read = _prepared(scene, tuple(params))
     devices = list(devices) if devices is not None else jax.local_devices()
     n_dev = len(devices)
     S = theta.shape[0]
@@ -105,8 +104,6 @@ def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
     size = max(n_dev, -(-min(size, max(S, 1)) // n_dev) * n_dev)
     build_s = time.perf_counter() - t0
 
-    values = jax.jit(jax.vmap(pmap._values))
-    read = jax.jit(jax.vmap(functools.partial(_monitor_values, layout)))
     out_mon: dict = {}
     status = np.zeros(S, int)
     iterations = np.zeros(S, int)
@@ -145,6 +142,29 @@ def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
         converged=ok, iterations=iterations,
         timing=dict(build_s=build_s, compile_s=compile_s, solve_s=solve_s, chunk=size,
                     devices=placed))
+
+
+_PREPARED: collections.OrderedDict = collections.OrderedDict()
+
+
+def _prepared(scene, params: tuple):
+    """The built scene and its jitted parameter map and monitor readings, kept for the
+    next batch of the same scene and parameters (the rounds of a factor-of-safety
+    search, repeated sweeps): no rebuilding, no retracing."""
+    key = (id(scene), params)
+    hit = _PREPARED.get(key)
+    if hit is not None and hit[0] is scene:
+        _PREPARED.move_to_end(key)
+        return hit[1:]
+    model, state, layout = model_mod.build(scene)
+    data0 = scene_data(scene, layout)
+    pmap = _ParameterMap(scene, model, layout, data0, list(params))
+    values = jax.jit(jax.vmap(pmap._values))
+    read = jax.jit(jax.vmap(functools.partial(_monitor_values, layout)))
+    _PREPARED[key] = (scene, model, state, layout, data0, values, read)
+    while len(_PREPARED) > 4:
+        _PREPARED.popitem(last=False)
+    return model, state, layout, data0, values, read
 
 
 def _batch_data(data0: Data, arrays: dict, size: int) -> Data:
