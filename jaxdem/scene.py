@@ -327,7 +327,7 @@ class SolverSettings:
     """Solver controls; max_displacement and step_length in m (None: the solver chooses)."""
 
     load_steps: int = 5
-    tolerance: float = 1e-9
+    tolerance: float = 1e-6
     max_iterations: int = 60
     max_displacement: float | None = None
     dtype: str = "float64"

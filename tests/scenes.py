@@ -85,7 +85,8 @@ def slide_and_stop(gap: float = 1.0, alpha: float = 30.0, phi: float = 15.0) -> 
     """Seed example 1: a block slides down a slope until it meets a fixed block."""
     joint = {"kn": 1e6, "ks": 5e5, "friction_deg": phi}
     return _block_on_slope("seed example 1", alpha, 1.0, 1.0, ("j", joint),
-                           {"load_steps": 1, "max_displacement": 3.0 * gap},
+                           # Tight tolerance: the tests check the global balance to 1e-8.
+                           {"load_steps": 1, "max_displacement": 3.0 * gap, "tolerance": 1e-9},
                            stop_at=4.0 - gap - 1.0)
 
 
@@ -105,7 +106,9 @@ def jointed_tunnel(*, spacing: float = 3.0, half: float = 9.0, water: bool = Tru
     in-situ stress in equilibrium)."""
     d = {
         "scene": {"name": "small jointed tunnel"},
-        "solver": {"load_steps": load_steps},
+        # Tight tolerance: the tests compare derivatives with central differences and
+        # the solver paths with each other to 1e-7.
+        "solver": {"load_steps": load_steps, "tolerance": 1e-9},
         "materials": {"rock": {"E": 2.0e7, "nu": 0.25, "unit_weight": 26.0, "cohesion": 2000.0,
                                "friction_deg": 45.0, "tensile_strength": 1000.0}},
         "joints": {
