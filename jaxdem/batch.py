@@ -71,7 +71,9 @@ def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
 
     Args:
       scene: a validated scene.
-      params: parameter paths that leave the geometry alone (see :func:`batchable`).
+      params: parameter paths that leave the geometry alone: those of
+        :func:`jaxdem.differentiable` and the strengths (a path that changes
+        the blocks or the array shapes raises a SceneError saying so).
       theta: (S, p) values, file units (friction in degrees).
       chunk: samples solved together, a multiple of the number of devices;
         default: on a CPU a few (what stays in cache, see :func:`_chunk_size`),
@@ -89,6 +91,8 @@ def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
         raise SceneError("theta", f"must be (samples, {len(params)}); got {theta.shape}")
     if not np.all(np.isfinite(theta)):
         raise SceneError("theta", "holds a NaN or infinite value")
+    if theta.shape[0] == 0:
+        raise SceneError("theta", "has no samples")
     for path in params:
         try:
             apply_overrides(scene.data, {path: 0.0})

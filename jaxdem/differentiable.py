@@ -285,6 +285,11 @@ def _monitor_values(layout, now: dict, ref: dict | None) -> dict:
     return out
 
 
+class NotSmooth(SceneError):
+    """A parameter that changes the blocks, the array shapes or the solver settings: it has
+    no derivative, and samples that differ in it cannot share one batch."""
+
+
 class _ParameterMap:
     """Scene parameters -> the model fields and driver loads they set, as a JAX function.
 
@@ -315,7 +320,7 @@ class _ParameterMap:
     def _kind(self, path):
         scene = self.scene
         keys = path.split(".")
-        unsupported = SceneError(path, "is not a parameter the solution depends on smoothly; "
+        unsupported = NotSmooth(path, "is not a parameter the solution depends on smoothly; "
                                  "differentiable parameters: " + "; ".join(DIFFERENTIABLE))
         sec = keys[0]
         if sec == "joints" and len(keys) == 3 and keys[2] in _JOINT_FIELD:

@@ -34,6 +34,7 @@ import numpy as np
 from scipy.special import ndtr, ndtri
 
 from jaxdem.batch import BatchResult, solve_batch
+from jaxdem.differentiable import NotSmooth
 from jaxdem.scene import SceneError
 
 METHODS = ("grid", "lhs", "mc")
@@ -281,9 +282,7 @@ def sweep(scene, vary: Sequence[Variable | str] | Mapping, samples: int, *,
         batch = solve_batch(scene, paths, everything, chunk=chunk, devices=devices,
                             progress=progress)
         mode = "batched"
-    except SceneError as err:
-        if "smoothly" not in err.problem:
-            raise
+    except NotSmooth:
         batch = solve_each(scene, paths, everything, progress=progress)
         mode = "loop"
     S = theta.shape[0]

@@ -89,6 +89,8 @@ def test_bad_batch_input_is_refused(tunnel):
         solve_batch(tunnel, ["joints.set1.kn"], np.array([[1e6], [np.nan]]))
     with pytest.raises(SceneError, match="theta"):
         solve_batch(tunnel, ["joints.set1.kn"], np.ones((3, 2)))
+    with pytest.raises(SceneError, match="no samples"):
+        solve_batch(tunnel, ["joints.set1.kn"], np.ones((0, 1)))
     with pytest.raises(SceneError, match="joints.nope.kn"):
         solve_batch(tunnel, ["joints.nope.kn"], np.ones((3, 1)))
     with pytest.raises(SceneError, match="smoothly"):
