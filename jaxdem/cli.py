@@ -178,8 +178,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     with bar:
         result = sweep(scene, variables, args.samples, method=method, seed=args.seed,
                        chunk=args.chunk, progress=bar)
-    written = [result.to_csv(out / "sweep.csv"), _write_json(_finite(result.to_dict()),
-                                                              out / "sweep.json")]
+    written = [result.to_csv(out / "sweep.csv"), _write_json(result.to_dict(), out / "sweep.json")]
     if result.tornado:
         written.append(plot_tornado(result.tornado, out / "tornado.png"))
     print(_sweep_summary(result))
@@ -280,19 +279,6 @@ def _parse_bounds(items: Sequence[str]) -> dict[str, tuple[float, float]]:
                                          f"(got {text!r})") from None
         out[path] = (lo, hi)
     return out
-
-
-def _finite(data: Any) -> Any:
-    """NaN and infinities as null, so that the JSON is standard."""
-    import math
-
-    if isinstance(data, dict):
-        return {k: _finite(v) for k, v in data.items()}
-    if isinstance(data, (list, tuple)):
-        return [_finite(v) for v in data]
-    if isinstance(data, float) and not math.isfinite(data):
-        return None
-    return data
 
 
 def _write_json(data: dict[str, Any], path: Path) -> Path:

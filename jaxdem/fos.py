@@ -50,6 +50,7 @@ from typing import Any
 
 import numpy as np
 
+from jaxdem.results import jsonable
 from jaxdem.scene import SceneError
 
 #: Outcome labels of a trial (from :class:`jaxdem.solver.Status`).
@@ -113,7 +114,7 @@ class FactorOfSafety:
 
     def to_dict(self) -> dict[str, Any]:
         """The content of ``fos.json``: plain JSON types only."""
-        return _jsonable(dict(
+        return jsonable(finite=True, x=dict(
             factor_of_safety=self.factor_of_safety, bracket=list(self.bracket),
             status=self.status, decided=self.decided, message=self.message,
             at_factor_1=self.at_factor_1, reduced=self.reduced, options=self.options,
@@ -437,22 +438,6 @@ def _message(r: FactorOfSafety, outcome: dict[float, str]) -> str:
         text += (f" WARNING: not monotone in F: stable at F = {listed} above the smallest "
                  f"unstable factor {hi:.4g} ({outcome[hi]}); F is the bracket below it.")
     return text
-
-
-def _jsonable(x: Any) -> Any:
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, (np.integer,)):
-        return int(x)
-    if isinstance(x, (np.floating, float)):
-        return float(x) if math.isfinite(float(x)) else None
-    if isinstance(x, np.bool_):
-        return bool(x)
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    return x
 
 
 def _write_json(data: dict[str, Any], path: Path) -> Path:

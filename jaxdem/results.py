@@ -101,7 +101,7 @@ class Result:
             "equilibrium": self.equilibrium,
             "timing": self.timing,
         }
-        return _jsonable(out)
+        return jsonable(out)
 
     def write_json(self, path: str | Path) -> Path:
         """Write ``to_dict()`` to ``path`` (indented JSON); returns the path."""
@@ -111,20 +111,22 @@ class Result:
         return path
 
 
-def _jsonable(x: Any) -> Any:
-    """NumPy scalars and arrays to Python numbers and lists, recursively."""
+def jsonable(x: Any, finite: bool = False) -> Any:
+    """NumPy scalars and arrays to Python numbers and lists, recursively; with ``finite``,
+    NaN and infinities to None (null), so that the JSON is standard."""
     if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
+        return {str(k): jsonable(v, finite) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
+        return [jsonable(v, finite) for v in x]
     if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
+        return jsonable(x.tolist(), finite)
     if isinstance(x, (np.bool_, bool)):
         return bool(x)
     if isinstance(x, (np.integer,)):
         return int(x)
     if isinstance(x, (np.floating, float)):
-        return float(x)
+        x = float(x)
+        return None if finite and not np.isfinite(x) else x
     return x
 
 

@@ -497,7 +497,6 @@ def _newton(model: Model, sub: _Sub, st0):
     """
     S = st0.shape[0]
     N = model.n_blocks
-    solve = dict(dense=_solve_dense, sparse=_solve_sparse, cg=_solve_cg)[model.linear_solver]
     # Force scale of the convergence test: the largest block load, or the
     # largest carried spring force (an in-situ state has large contact forces
     # and no net load), whichever is larger.
@@ -539,7 +538,7 @@ def _newton(model: Model, sub: _Sub, st0):
         elif model.linear_solver == "sparse":
             ddu = _solve_sparse(model, sub, terms, ev["R"], ~c["done"])
         else:
-            ddu = solve(model, sub, terms, ev["R"])
+            ddu = _solve_dense(model, sub, terms, ev["R"])
         t_now = _travel(model, c["du"])
         t_step = _travel(model, ddu)
         room = jnp.maximum(step - t_now, 0.0)

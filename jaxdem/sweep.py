@@ -35,6 +35,7 @@ from scipy.special import ndtr, ndtri
 
 from jaxdem.batch import BatchResult, solve_batch
 from jaxdem.differentiable import NotSmooth
+from jaxdem.results import jsonable
 from jaxdem.scene import SceneError
 
 METHODS = ("grid", "lhs", "mc")
@@ -226,13 +227,13 @@ class SweepResult:
         return path
 
     def to_dict(self) -> dict:
-        return dict(
+        """The content of sweep.json: plain JSON types, NaN as null."""
+        return jsonable(finite=True, x=dict(
             method=self.method, seed=self.seed, samples=int(self.batch.theta.shape[0]),
             mode=self.mode,
             variables=[dict(path=v.path, kind=v.kind, args=list(v.args), log=v.log)
                        for v in self.variables],
-            probability=self.probability, tornado=self.tornado,
-            timing={k: v for k, v in self.batch.timing.items()})
+            probability=self.probability, tornado=self.tornado, timing=self.batch.timing))
 
 
 def sweep(scene, vary: Sequence[Variable | str] | Mapping, samples: int, *,
