@@ -518,6 +518,11 @@ def _back_analysis_summary(result: Any) -> str:
 # Parser
 
 
+def _add_set_option(parser: argparse.ArgumentParser, help: str) -> None:
+    """``--set PATH=VALUE ...`` (repeatable): scene parameter overrides."""
+    parser.add_argument("--set", action="append", nargs="+", metavar="PATH=VALUE", help=help)
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="jaxdem",
@@ -538,13 +543,8 @@ def _parser() -> argparse.ArgumentParser:
     run = sub.add_parser("run", help="solve a scene, write result.json and figures")
     run.add_argument("scene", metavar="SCENE.toml")
     run.add_argument("--out", metavar="DIR", help="output folder (default out/<scene name>)")
-    run.add_argument(
-        "--set",
-        action="append",
-        nargs="+",
-        metavar="PATH=VALUE",
-        help="override scene parameters, e.g. --set joints.set1.kn=2e6 in_situ.k0=1.5 (repeatable)",
-    )
+    _add_set_option(run, "override scene parameters, e.g. --set joints.set1.kn=2e6 "
+                    "in_situ.k0=1.5 (repeatable)")
     run.set_defaults(func=cmd_run)
 
     check = sub.add_parser("check", help="validate a scene and draw its blocks")
@@ -592,13 +592,7 @@ def _parser() -> argparse.ArgumentParser:
         metavar="DIR",
         help=f"output folder (default {DEFAULT_BACK_ANALYSIS_OUT})",
     )
-    back.add_argument(
-        "--set",
-        action="append",
-        nargs="+",
-        metavar="PATH=VALUE",
-        help="override scene parameters before fitting (repeatable)",
-    )
+    _add_set_option(back, "override scene parameters before fitting (repeatable)")
     back.set_defaults(func=cmd_back_analyse)
 
     sw = sub.add_parser(
@@ -630,13 +624,7 @@ def _parser() -> argparse.ArgumentParser:
                     "on a GPU as many as fit in memory)")
     sw.add_argument("--out", default=DEFAULT_SWEEP_OUT, metavar="DIR",
                     help=f"output folder (default {DEFAULT_SWEEP_OUT})")
-    sw.add_argument(
-        "--set",
-        action="append",
-        nargs="+",
-        metavar="PATH=VALUE",
-        help="override scene parameters for every sample (repeatable)",
-    )
+    _add_set_option(sw, "override scene parameters for every sample (repeatable)")
     sw.set_defaults(func=cmd_sweep)
 
     fos = sub.add_parser(
@@ -659,12 +647,6 @@ def _parser() -> argparse.ArgumentParser:
                      help="factors solved together per round (default 8)")
     fos.add_argument("--tolerance", type=float, default=0.005, metavar="R",
                      help="stop when the bracket's relative width is <= R (default 0.005)")
-    fos.add_argument(
-        "--set",
-        action="append",
-        nargs="+",
-        metavar="PATH=VALUE",
-        help="override scene parameters before the reduction (repeatable)",
-    )
+    _add_set_option(fos, "override scene parameters before the reduction (repeatable)")
     fos.set_defaults(func=cmd_fos)
     return parser
