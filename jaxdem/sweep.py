@@ -121,14 +121,17 @@ class Variable:
         """n grid levels: a range's ends and evenly spaced points between; a distribution's
         quantiles at (i + 1/2) / n."""
         if self.kind == "range":
-            return self.quantile(np.linspace(0.0, 1.0, n) if n > 1 else np.array([0.5]))
+            if n == 1:
+                return self.quantile(np.array([0.5]))
+            space = np.geomspace if self.log else np.linspace
+            return space(self.args[0], self.args[1], n)  # the ends exactly
         return self.quantile((np.arange(n) + 0.5) / n)
 
     def tornado_points(self) -> tuple[float, float, float]:
         """(low, base, high) of a tornado bar: a range's ends and middle, a distribution's
         10th, 50th and 90th percentiles."""
         if self.kind == "range":
-            lo, mid, hi = self.quantile([0.0, 0.5, 1.0])
+            lo, mid, hi = self.args[0], float(self.quantile(0.5)), self.args[1]
         else:
             lo, mid, hi = self.quantile([TORNADO_QUANTILES[0], 0.5, TORNADO_QUANTILES[1]])
         return float(lo), float(mid), float(hi)
