@@ -282,11 +282,9 @@ def _parse_bounds(items: Sequence[str]) -> dict[str, tuple[float, float]]:
 
 
 def _write_json(data: dict[str, Any], path: Path) -> Path:
-    import json
+    from jaxdem.results import write_json
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(data, indent=2, allow_nan=False) + "\n")
-    return path
+    return write_json(data, path)
 
 
 def _error(message: str) -> None:

@@ -50,7 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from jaxdem.results import jsonable
+from jaxdem.results import jsonable, write_json
 from jaxdem.scene import SceneError
 
 #: Outcome labels of a trial (from :class:`jaxdem.solver.Status`).
@@ -294,7 +294,7 @@ def write_outputs(fos: FactorOfSafety, scene, out_dir: str | Path) -> list[Path]
                                      "although the batched trial did not: the figure shows "
                                      "that equilibrium")
         written.append(figure)
-    written.insert(0, _write_json(fos.to_dict(), out / "fos.json"))
+    written.insert(0, write_json(fos.to_dict(), out / "fos.json"))
     written.append(plot_trials(fos, out / "fos.png"))
     return written
 
@@ -438,13 +438,6 @@ def _message(r: FactorOfSafety, outcome: dict[float, str]) -> str:
         text += (f" WARNING: not monotone in F: stable at F = {listed} above the smallest "
                  f"unstable factor {hi:.4g} ({outcome[hi]}); F is the bracket below it.")
     return text
-
-
-def _write_json(data: dict[str, Any], path: Path) -> Path:
-    import json
-
-    path.write_text(json.dumps(data, indent=2, allow_nan=False) + "\n")
-    return path
 
 
 __all__ = ["FactorOfSafety", "factor_of_safety", "plot_trials", "reduce_strength", "solve_at",

@@ -111,6 +111,15 @@ class Result:
         return path
 
 
+def write_json(data: dict[str, Any], path: str | Path) -> Path:
+    """Write plain-JSON ``data`` (see :func:`jsonable`) to ``path``, indented, refusing
+    NaN (not standard JSON); makes the folder. Returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=2, allow_nan=False) + "\n")
+    return path
+
+
 def jsonable(x: Any, finite: bool = False) -> Any:
     """NumPy scalars and arrays to Python numbers and lists, recursively; with ``finite``,
     NaN and infinities to None (null), so that the JSON is standard."""
