@@ -33,6 +33,8 @@ JAX, the solver and matplotlib are imported inside the commands, so that
 from __future__ import annotations
 
 import argparse
+import os
+import re
 import sys
 from collections.abc import Sequence
 from contextlib import AbstractContextManager
@@ -51,9 +53,26 @@ DEFAULT_BACK_ANALYSIS_OUT = "jaxdem-back-analysis"
 DEFAULT_SWEEP_OUT = "jaxdem-sweep"
 DEFAULT_FOS_OUT = "jaxdem-fos"
 
+MAX_TRIALS = 1024
+"""Most ``fos --trials`` (factors solved together in one batch per round)."""
+MAX_FIT_ITERATIONS = 10_000
+"""Most ``back-analyse --max-iterations`` (each iteration solves the scene at least once)."""
+
 
 class InputError(Exception):
     """Invalid input found by the command line itself (exit status 2)."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose usage errors are one line (``--samples: invalid int value:
+    'x'``), printed by :func:`main` like every other invalid input, instead of the usage."""
+
+    def error(self, message: str):  # type: ignore[override]
+        named = re.match(r"argument ([^:]+?): (.*)", message)
+        if named:
+            option = named.group(1).split("/")[-1]  # "-h/--help" -> "--help"
+            raise InputError(f"{option}: {named.group(2)} (see {self.prog} --help)")
+        raise InputError(f"{self.prog}: {message} (see {self.prog} --help)")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -73,8 +92,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = _parser()
     try:
         args = parser.parse_args(None if argv is None else list(argv))
-    except SystemExit as exit_:  # --help (0) or a usage error (2, message already printed)
+    except SystemExit as exit_:  # --help or --version (0)
         return int(exit_.code or 0)
+    except InputError as err:  # a usage error
+        _error(str(err))
+        return EXIT_INVALID_INPUT
     if args.command is None:
         parser.print_help(sys.stderr)
         return EXIT_INVALID_INPUT
@@ -117,6 +139,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     path = Path(args.scene)
     out = Path(args.out) if args.out else Path("out") / path.stem
     scene = _load(path, overrides={})
+    _check_out(out)
     print(f"OK: {_scene_summary(scene)}")
     figure = plot_scene_check(scene, out / "check.png")
     print(f"wrote {figure}")
@@ -129,9 +152,11 @@ def cmd_back_analyse(args: argparse.Namespace) -> int:
     out = Path(args.out)
     overrides = _parse_overrides([item for group in args.set or [] for item in group])
     bounds = _parse_bounds([item for group in args.bounds or [] for item in group])
-    if args.max_iterations < 0:
-        raise InputError(f"--max-iterations must be >= 0 (got {args.max_iterations})")
+    if not 0 <= args.max_iterations <= MAX_FIT_ITERATIONS:
+        what = ">= 0" if args.max_iterations < 0 else f"<= {MAX_FIT_ITERATIONS:,}"
+        raise InputError(f"--max-iterations must be {what} (got {args.max_iterations})")
     scene = _load(path, overrides)
+    _check_out(out)
 
     from inverse import back_analyse, read_observations
     from inverse.backanalysis import NO_EQUILIBRIUM_AT_START
@@ -163,7 +188,12 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     path = Path(args.scene)
     out = Path(args.out)
     overrides = _parse_overrides([item for group in args.set or [] for item in group])
+    if args.chunk is not None and args.chunk < 1:
+        raise InputError(f"--chunk must be >= 1 (got {args.chunk})")
+    if args.seed < 0:
+        raise InputError(f"--seed must be >= 0 (got {args.seed})")
     scene = _load(path, overrides)
+    _check_out(out)
 
     from jaxdem.plots import plot_tornado
     from jaxdem.sweep import Variable, draw, sweep
@@ -191,11 +221,13 @@ def cmd_fos(args: argparse.Namespace) -> int:
     path = Path(args.scene)
     out = Path(args.out)
     overrides = _parse_overrides([item for group in args.set or [] for item in group])
-    if args.trials < 2:
-        raise InputError(f"--trials must be an integer >= 2 (got {args.trials})")
+    if not 2 <= args.trials <= MAX_TRIALS:
+        raise InputError(f"--trials must be an integer from 2 to {MAX_TRIALS} "
+                         f"(got {args.trials})")
     if not 0 < args.tolerance < float("inf"):
         raise InputError(f"--tolerance must be a number > 0 (got {args.tolerance})")
     scene = _load(path, overrides)
+    _check_out(out)
 
     from jaxdem.fos import factor_of_safety, write_outputs
 
@@ -226,6 +258,7 @@ def cmd_fos(args: argparse.Namespace) -> int:
 
 def _solve_and_report(path: Path, out: Path, overrides: dict[str, Any]) -> int:
     scene = _load(path, overrides)
+    _check_out(out)
     print(f"{_scene_name(scene, path)}: {_scene_summary(scene)}")
 
     from jaxdem import solver
@@ -248,6 +281,18 @@ def _load(path: Path, overrides: dict[str, Any]) -> Any:
     from jaxdem.scene import load_scene
 
     return load_scene(path, set=overrides or None)
+
+
+def _check_out(out: Path) -> None:
+    """Refuse, before any computation, an output folder that cannot be made or written:
+    a file in its place or on its path, or a folder without write permission."""
+    for folder in (out, *out.parents):
+        if folder.exists() or folder.is_symlink():
+            if not folder.is_dir():
+                raise InputError(f"--out {out}: {folder} exists and is not a folder")
+            if not os.access(folder, os.W_OK | os.X_OK):
+                raise InputError(f"--out {out}: cannot write in {folder} (permission denied)")
+            return
 
 
 def _parse_overrides(items: Sequence[str]) -> dict[str, Any]:
@@ -522,7 +567,7 @@ def _add_set_option(parser: argparse.ArgumentParser, help: str) -> None:
 
 
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="jaxdem",
         description="2D block-spring discrete element analysis of tunnels in jointed rock.",
         epilog="Exit status: 0 solved (stable or not), 2 invalid input, 3 solver did not converge.",

@@ -58,13 +58,24 @@ Documented extensions and choices:
   the rock (highest domain or block vertex) and is stored resolved. Fields of the other
   mode are refused rather than ignored.
 - Monitor points and bolt ends must lie in rock: inside the domain and not strictly inside
-  an excavation, or inside an explicit block.
+  an excavation, or inside an explicit block. A boundary given by ``from``/``to`` must touch
+  the rock; the excavations must leave some of the domain.
+- Limits, so that a typo is refused rather than run out of time or memory: ``load_steps``
+  and ``max_iterations`` at most ``MAX_STEPS``; a scene that would generate more than
+  ``MAX_BLOCKS`` blocks (estimated from spacings, gaps and mesh size before generating);
+  polygons of more than ``MAX_POLYGON_POINTS`` vertices; files over ``MAX_FILE_BYTES``;
+  ``solver.max_displacement`` above 10 model sizes, ``solver.step_length`` outside 1e-6 to
+  1 model size; coordinates beyond ``MAX_OFFSET`` model sizes from (0, 0). Material and
+  joint names may not contain "." (they are segments of dotted paths). A key or table
+  given twice in the TOML is refused naming its path and line.
 """
 
 from __future__ import annotations
 
+import ast
 import copy
 import math
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -105,6 +116,25 @@ __all__ = [
 
 MAX_MAGNITUDE = 1e15
 """Largest absolute value accepted for any number in a scene (typos such as 3e70)."""
+
+MAX_STEPS = 10_000
+"""Most load steps (``solver.load_steps``, ``stages.N.load_steps``) and Newton iterations
+(``solver.max_iterations``) accepted: the defaults are 5 and 60, so more is a typo."""
+
+MAX_BLOCKS = 500_000
+"""Most blocks a scene may generate (estimated from joint spacings and mesh size before
+anything is generated): 50 times the largest model benchmarked (10,464 blocks, 2 GB)."""
+
+MAX_POLYGON_POINTS = 1_000
+"""Most vertices in one polygon (checking a polygon for crossings costs n^2)."""
+
+MAX_FILE_BYTES = 64 * 2**20
+"""Largest scene file read (64 MiB; a 10,000-block scene is about 1 MiB)."""
+
+MAX_OFFSET = {"float64": 1e9, "float32": 1e3}
+"""Coordinates may lie at most this many model sizes from (0, 0): beyond, the dtype resolves
+less than about 1e-7 (float64) or 1e-4 (float32) of the model's size, the order of the
+solver's contact tolerance (1e-6, float32 1e-4, of the block size)."""
 
 
 class SceneError(ValueError):
@@ -586,6 +616,14 @@ def _field(
     return x
 
 
+def _count(table: dict, key: str, path: str, default: int | None = None) -> int | None:
+    """load_steps or max_iterations: an integer from 1 to MAX_STEPS."""
+    n = _field(table, key, path, default=default, lo=1, integer=True)
+    if n is not None and n > MAX_STEPS:
+        raise SceneError(f"{path}.{key}", f"must be <= {MAX_STEPS:,} (got {n:,})")
+    return n
+
+
 # --------------------------------------------------------------------------- sections
 
 
@@ -594,13 +632,11 @@ def _parse_solver(data: dict) -> SolverSettings:
     d = SolverSettings()
     dtype = _string(t["dtype"], "solver.dtype", DTYPES) if "dtype" in t else d.dtype
     return SolverSettings(
-        load_steps=_field(t, "load_steps", "solver", default=d.load_steps, lo=1, integer=True),
+        load_steps=_count(t, "load_steps", "solver", default=d.load_steps),
         tolerance=_field(
             t, "tolerance", "solver", default=d.tolerance, lo=0, hi=1, lo_open=True, hi_open=True
         ),
-        max_iterations=_field(
-            t, "max_iterations", "solver", default=d.max_iterations, lo=1, integer=True
-        ),
+        max_iterations=_count(t, "max_iterations", "solver", default=d.max_iterations),
         max_displacement=_field(t, "max_displacement", "solver", lo=0, lo_open=True),
         dtype=dtype,
         regularization=_field(
@@ -626,10 +662,25 @@ def _named_tables(data: dict, key: str) -> dict:
     return value
 
 
+def _check_table_name(name: Any, path: str, example: str) -> None:
+    """NAME of [materials.NAME] or [joints.NAME]: a segment of dotted parameter paths."""
+    if not isinstance(name, str):
+        raise SceneError(path, f"the name must be a string (got {_fmt(name)})")
+    if not name.strip():
+        raise SceneError(path, "the name must not be empty")
+    if "." in name:
+        raise SceneError(
+            path,
+            f"the name {name!r} contains '.', so its parameters ({path}.{example}, ...) "
+            "could not be addressed by dotted path; rename it",
+        )
+
+
 def _parse_materials(data: dict) -> dict[str, Material]:
     out = {}
     for name, raw in _named_tables(data, "materials").items():
         p = f"materials.{name}"
+        _check_table_name(name, p, "E")
         t = _table(raw, p, MATERIAL_FIELDS)
         out[name] = Material(
             name=name,
@@ -647,6 +698,7 @@ def _parse_joints(data: dict) -> dict[str, Joint]:
     out = {}
     for name, raw in _named_tables(data, "joints").items():
         p = f"joints.{name}"
+        _check_table_name(name, p, "kn")
         t = _table(raw, p, JOINT_FIELDS)
         origin = None
         if "origin" in t:
@@ -696,8 +748,12 @@ def _check_set_geometry(j: Joint, t: dict, p: str) -> None:
 def _check_polygon(v: np.ndarray, path: str, *, convex: bool = True) -> None:
     """Refuse repeated points, self-intersecting, degenerate, clockwise polygons and, when
     ``convex``, 180-degree corners and reflex corners."""
-    diag = float(np.hypot(*(v.max(axis=0) - v.min(axis=0))))
     n = len(v)
+    if n > MAX_POLYGON_POINTS:
+        raise SceneError(
+            path, f"too many vertices (got {n:,}; at most {MAX_POLYGON_POINTS:,}); simplify it"
+        )
+    diag = float(np.hypot(*(v.max(axis=0) - v.min(axis=0))))
     tol = 1e-9 * diag
     if geometry.has_repeated_points(v, tol):
         diff = v[:, None, :] - v[None, :, :]
@@ -838,8 +894,8 @@ def _side_segment(side: str, box: tuple) -> tuple[np.ndarray, np.ndarray]:
     return a, b
 
 
-def _parse_boundaries(data: dict, box: tuple, tol: float,
-                      stages: tuple = ()) -> tuple[Boundary, ...]:
+def _parse_boundaries(data: dict, box: tuple, tol: float, stages: tuple = (),
+                      rock: _Rock | None = None) -> tuple[Boundary, ...]:
     out = []
     for i, raw in enumerate(_array_of_tables(data, "boundaries")):
         p = f"boundaries.{i}"
@@ -862,6 +918,10 @@ def _parse_boundaries(data: dict, box: tuple, tol: float,
             b = _point(t["to"], f"{p}.to")
             if float(np.hypot(*(b - a))) <= tol:
                 raise SceneError(f"{p}.to", f"same point as from {_fmt_point(a)}")
+            if rock is not None and not rock.touches(a, b):
+                raise SceneError(
+                    p, f"segment {_fmt_point(a)}-{_fmt_point(b)} does not touch the rock"
+                )
         if "condition" not in t:
             raise SceneError(f"{p}.condition", f"required ({', '.join(CONDITIONS)})")
         cond = _string(t["condition"], f"{p}.condition", CONDITIONS)
@@ -931,6 +991,26 @@ class _Rock:
             return False
         return self.excavation_at(q) is None
 
+    def touches(self, a: np.ndarray, b: np.ndarray) -> bool:
+        """Whether segment a-b meets a block or the domain (within 1e3 tol, as the model
+        finds faces on a boundary)."""
+        tol = 1e3 * self.tol
+        lo, hi = np.minimum(a, b) - tol, np.maximum(a, b) + tol
+        bx = self.boxes
+        near = np.nonzero(
+            (bx[:, 0] <= hi[0]) & (lo[0] <= bx[:, 2]) & (bx[:, 1] <= hi[1]) & (lo[1] <= bx[:, 3])
+        )[0]
+        polys = [self.blocks[k].vertices for k in near]
+        if self.domain is not None:
+            polys.append(self.domain.outline)
+        for v in polys:
+            if geometry.point_in_polygon(a, v, tol):
+                return True
+            edges = zip(v, np.roll(v, -1, axis=0), strict=True)
+            if any(geometry.segments_intersect(a, b, p, q, tol) for p, q in edges):
+                return True
+        return False
+
     def where(self, q: np.ndarray) -> str:
         """Why ``q`` is not in rock, for messages."""
         name = self.excavation_at(q)
@@ -993,11 +1073,15 @@ def _vertices(vs: Any, vp: str, min_points: int = 3) -> np.ndarray:
     return np.array([_point(q, f"{vp}.{k}") for k, q in enumerate(vs)], dtype=np.float64)
 
 
-def _polygon(t: dict, key: str, path: str) -> np.ndarray:
-    """A required simple CCW polygon field (may be non-convex), read-only."""
+def _polygon(t: dict, key: str, path: str, far: tuple[float, str] | None = None) -> np.ndarray:
+    """A required simple CCW polygon field (may be non-convex), read-only. ``far``: (model
+    size, dtype) to refuse first a vertex too far away (that spoils the checks' tolerance)."""
     if key not in t:
         raise SceneError(f"{path}.{key}", "required field is missing")
     v = _vertices(t[key], f"{path}.{key}")
+    if far is not None:
+        k = int(np.argmax(np.max(np.abs(v), axis=1)))
+        _check_far(v[k], f"{path}.{key}.{k}", *far)
     _check_polygon(v, f"{path}.{key}", convex=False)
     v.setflags(write=False)
     return v
@@ -1076,7 +1160,8 @@ def _check_blocks_outside_domain(blocks: tuple[Block, ...], domain: Domain | Non
             )
 
 
-def _parse_zones(data: dict, materials: dict[str, Material], domain: Domain | None) -> tuple:
+def _parse_zones(data: dict, materials: dict[str, Material], domain: Domain | None,
+                 far: tuple[float, str] | None = None) -> tuple:
     raw = _array_of_tables(data, "zones")
     if raw and domain is None:
         raise SceneError("zones", "needs a [domain] (a zone is a region of the generated rock)")
@@ -1086,7 +1171,7 @@ def _parse_zones(data: dict, materials: dict[str, Material], domain: Domain | No
         p = f"zones.{i}"
         t = _table(r, p, ZONE_FIELDS)
         name = _name(t, p, seen, "zones", default=f"zone{i}")
-        v = _polygon(t, "vertices", p)
+        v = _polygon(t, "vertices", p, far)
         mat = _material_ref(t, p, materials)
         assert domain is not None
         a = geometry.polygon_overlap_area(v, domain.outline)
@@ -1103,7 +1188,7 @@ def _parse_stages(data: dict) -> tuple[Stage, ...]:
         p = f"stages.{i}"
         t = _table(r, p, STAGE_FIELDS)
         name = _name(t, p, seen, "stages")
-        steps = _field(t, "load_steps", p, lo=1, integer=True)
+        steps = _count(t, "load_steps", p)
         table = _water_table(t["water_table"], f"{p}.water_table") if "water_table" in t else None
         out.append(Stage(name=name, load_steps=steps, water_table=table))
     return tuple(out)
@@ -1119,7 +1204,7 @@ def _stage_ref(t: dict, path: str, stages: tuple[Stage, ...]) -> str | None:
 
 def _segments_for(radius: float, h: float) -> int:
     """Segments around a full circle of ``radius`` for element size ``h`` (m)."""
-    return int(np.clip(math.ceil(2.0 * math.pi * radius / h), 24, 120))
+    return math.ceil(min(max(2.0 * math.pi * radius / h, 24.0), 120.0))  # clip, then ceil: no inf
 
 
 def _discretisation_length(domain: Domain | None, joints: dict[str, Joint], r: float) -> float:
@@ -1159,6 +1244,7 @@ def _parse_excavations(
     stages: tuple[Stage, ...],
     box: tuple,
     tol: float,
+    far: tuple[float, str] | None = None,
 ) -> tuple[Excavation, ...]:
     out: list[Excavation] = []
     seen: dict[str, int] = {}
@@ -1174,7 +1260,7 @@ def _parse_excavations(
                 raise SceneError(f"{p}.{key}", f"not used by shape {shape!r}")
         center = radius = width = height = None
         if shape == "polygon":
-            v = np.array(_polygon(t, "vertices", p))
+            v = np.array(_polygon(t, "vertices", p, far))
         else:
             if "center" not in t:
                 raise SceneError(f"{p}.center", "required field is missing")
@@ -1229,7 +1315,120 @@ def _parse_excavations(
                 height=height,
             )
         )
+    if domain is not None and out:
+        dug = sum(geometry.signed_area(e.vertices) for e in out)
+        if dug >= geometry.signed_area(domain.outline) * (1.0 - 1e-9):
+            raise SceneError(
+                f"excavations.{len(out) - 1}",
+                "the excavations remove the whole domain: no rock would be left",
+            )
     return tuple(out)
+
+
+def _check_block_count(
+    domain: Domain | None,
+    joints: dict[str, Joint],
+    excavations: tuple[Excavation, ...],
+    n_explicit: int,
+) -> None:
+    """Refuse a scene that would generate more than MAX_BLOCKS blocks, judged from an
+    estimate made before anything is generated (which would exhaust time or memory).
+
+    Per joint set: its trace lines across the domain and, with persistence < 1, its trace
+    ends (each cuts a block); per pair of sets: their crossings, area sin(angle) p1 p2 /
+    (s1 s2); a mesh: 2 triangles per square cell of mesh_size (graded: of mesh_max_size,
+    plus 4 perimeter / mesh_size along the excavations), 2 more per cell that a trace or
+    an excavation outline cuts. Within a factor 1.5 of the generated count on the examples.
+    """
+    if domain is None:
+        return
+    v = domain.outline
+    area = geometry.signed_area(v)
+    made: dict[str, float] = {}  # field path -> blocks it makes
+    sets = []  # (name, dip (rad), spacing, persistence, joint)
+    for name, j in joints.items():
+        if j.dip_deg is not None and j.spacing is not None:
+            sets.append((name, math.radians(j.dip_deg), j.spacing, j.persistence or 1.0, j))
+    traces = 0.0  # total trace length (m), about
+    for name, dip, spacing, persistence, j in sets:
+        d = np.array([math.cos(dip), math.sin(dip)])
+        lines = float(np.ptp(v @ np.array([-d[1], d[0]]))) / spacing
+        along = float(np.ptp(v @ d))
+        made[f"joints.{name}.spacing"] = lines
+        traces += lines * along * persistence
+        if math.isfinite(j.trace_length):
+            key = f"joints.{name}.{'gap' if j.gap is not None else 'spacing'}"
+            ends = 2.0 * lines * along / (j.trace_length + j.bridge_length)
+            made[key] = made.get(key, 0.0) + ends
+    for k, (na, dip_a, sa, pa, _) in enumerate(sets):
+        for nb, dip_b, sb, pb, _ in sets[k + 1:]:
+            key = f"joints.{na if sa <= sb else nb}.spacing"
+            made[key] += area * abs(math.sin(dip_a - dip_b)) * pa * pb / sa / sb
+    h, grown = domain.mesh_size, domain.mesh_max_size
+    if h is not None:
+        edges = [np.roll(e.vertices, -1, axis=0) - e.vertices for e in excavations]
+        perimeter = sum(float(np.sum(np.hypot(e[:, 0], e[:, 1]))) for e in edges)
+        if grown is not None and grown > h and excavations:
+            cells = area / grown / grown + 4.0 * perimeter / h
+        else:
+            cells = area / h / h
+        made["domain.mesh_size"] = 2.0 * (cells + (perimeter + traces) / h)
+    total = n_explicit + 1.0 + sum(made.values())
+    if total > MAX_BLOCKS:
+        path = max(made, key=lambda key: made[key])
+        raise SceneError(
+            path,
+            f"too small: the scene would generate about {total:.3g} blocks, more than the "
+            f"{MAX_BLOCKS:,} accepted",
+        )
+
+
+def _check_coordinates(
+    blocks: tuple[Block, ...],
+    domain: Domain | None,
+    joints: dict[str, Joint],
+    box: tuple,
+    size: float,
+    solver: SolverSettings,
+) -> None:
+    """Coordinates the dtype can resolve, and solver lengths in proportion to the model."""
+    if max(abs(x) for x in box) > MAX_OFFSET[solver.dtype] * size:
+        polys = [("domain.outline", domain.outline)] if domain is not None else []
+        polys += [(f"blocks.{i}.vertices", b.vertices) for i, b in enumerate(blocks)]
+        path, v = max(polys, key=lambda pv: float(np.max(np.abs(pv[1]))))
+        k = int(np.argmax(np.max(np.abs(v), axis=1)))
+        _check_far(v[k], f"{path}.{k}", size, solver.dtype)
+    for name, j in joints.items():
+        if j.origin is not None:
+            _check_far(np.array(j.origin), f"joints.{name}.origin", size, solver.dtype)
+    # Substeps move at most step_length until a block has travelled max_displacement, and
+    # contact detection looks 2 step_length ahead: bound both by the model's size.
+    if solver.max_displacement is not None and solver.max_displacement > 10.0 * size:
+        raise SceneError(
+            "solver.max_displacement",
+            f"larger than 10 times the model ({solver.max_displacement:g} m > "
+            f"{10.0 * size:.3g} m): a block would have left the model long before",
+        )
+    step = solver.step_length
+    if step is not None and not 1e-6 * size <= step <= size:
+        raise SceneError(
+            "solver.step_length",
+            f"must be between 1e-6 times and once the model's size ({1e-6 * size:.3g} m to "
+            f"{size:.3g} m; got {step:g})",
+        )
+
+
+def _check_far(q: np.ndarray, path: str, size: float, dtype: str) -> None:
+    """Refuse a point so far from (0, 0) that ``dtype`` cannot resolve a model ``size`` m
+    across there (MAX_OFFSET model sizes)."""
+    limit = MAX_OFFSET[dtype] * size
+    if float(np.max(np.abs(q))) > limit:
+        raise SceneError(
+            path,
+            f"{_fmt_point(q)} is too far from (0, 0) for a model {size:.3g} m across "
+            f"({dtype} resolves it only within {limit:.3g} m of (0, 0)); shift the "
+            "coordinates towards (0, 0)",
+        )
 
 
 def _parse_in_situ(data: dict, top: float) -> InSitu | None:
@@ -1373,22 +1572,33 @@ def _parse(data: Any, source: str) -> Scene:
     if not joints and len(blocks) > 1:
         raise SceneError("joints", "at least one joint is needed for contacts between blocks")
 
-    _check_overlaps(blocks)
-    _check_blocks_outside_domain(blocks, domain)
-
     rock_points = [b.vertices for b in blocks]
     if domain is not None:
         rock_points.append(domain.outline)
     box = geometry.bbox(np.concatenate(rock_points))
-    tol = 1e-9 * float(np.hypot(box[2] - box[0], box[3] - box[1]))
-    zones = _parse_zones(data, materials, domain)
+    size = float(np.hypot(box[2] - box[0], box[3] - box[1]))
+    tol = 1e-9 * size
+    _check_coordinates(blocks, domain, joints, box, size, solver)
+
+    _check_overlaps(blocks)
+    _check_blocks_outside_domain(blocks, domain)
+
+    far = (size, solver.dtype)
+    zones = _parse_zones(data, materials, domain, far)
     stages = _parse_stages(data)
-    excavations = _parse_excavations(data, domain, joints, stages, box, tol)
+    excavations = _parse_excavations(data, domain, joints, stages, box, tol, far)
+    _check_block_count(domain, joints, excavations, len(blocks))
     discontinuities = _parse_discontinuities(data, joints, default_joint, box, tol)
-    boundaries = _parse_boundaries(data, box, tol, stages)
+    rock = _Rock(blocks, domain, excavations, tol)
+    boundaries = _parse_boundaries(data, box, tol, stages, rock)
+    # Lines may reach beyond the rock, but not beyond what the dtype resolves.
+    ends = [("discontinuities", i, d) for i, d in enumerate(discontinuities)]
+    ends += [("boundaries", i, b) for i, b in enumerate(boundaries) if b.side is None]
+    for section, i, line in ends:
+        _check_far(line.start, f"{section}.{i}.from", *far)
+        _check_far(line.end, f"{section}.{i}.to", *far)
     in_situ = _parse_in_situ(data, top=box[3])
     water = _parse_water(data)
-    rock = _Rock(blocks, domain, excavations, tol)
     bolts = _parse_bolts(data, rock, stages)
     supports = _parse_supports(data, excavations, stages)
     monitors = _parse_monitors(data, rock)
@@ -1438,23 +1648,71 @@ def parse_scene(data: dict, source: str = "<dict>") -> Scene:
 def _read_toml(path: Path) -> dict:
     name = str(path)
     try:
-        raw = path.read_bytes()
+        with path.open("rb") as f:
+            raw = f.read(MAX_FILE_BYTES + 1)  # bounded: /dev/zero or a huge file
     except OSError as exc:
         reason = exc.strerror or type(exc).__name__
         raise SceneError(name, f"cannot read scene file ({reason})") from exc
+    if len(raw) > MAX_FILE_BYTES:
+        raise SceneError(name, f"scene file is larger than {MAX_FILE_BYTES // 2**20} MiB")
     try:
-        text = raw.decode("utf-8")
+        text = raw.decode("utf-8-sig")  # -sig: a byte-order mark some editors write
     except UnicodeDecodeError as exc:
         raise SceneError(name, f"scene file is not UTF-8 text ({exc.reason})") from exc
     if not text.strip():
         raise SceneError(name, "scene file is empty")
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise SceneError(name, f"invalid TOML ({exc})") from exc
+    data = _parse_toml(text, name)
     if not data:
         raise SceneError(name, "scene file is empty (only comments)")
     return data
+
+
+def _parse_toml(text: str, source: str) -> dict:
+    """TOML text -> dict; a syntax error, a key or table given twice, or an integer too
+    long to read is a SceneError (a duplicate names the field path and the line)."""
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise _toml_error(str(exc), text, source) from None
+    except ValueError as exc:  # e.g. an integer of more than 4,300 digits
+        raise SceneError(source, f"invalid TOML ({exc})") from None
+
+
+_HEADER = re.compile(r"^\s*(\[\[?)\s*([^\]]+?)\s*\]\]?")
+_KEY = re.compile(r"^\s*([^=\[#]+?)\s*=")
+
+
+def _toml_error(message: str, text: str, source: str) -> SceneError:
+    """A TOML decode error as a SceneError; a key or table declared twice names its path."""
+    at = re.search(r"\(at line (\d+), column \d+\)$", message)
+    twice = re.match(r"Cannot declare (\(.*\)) twice", message)
+    if at and twice:
+        keys = ast.literal_eval(twice.group(1))
+        return SceneError(".".join(map(str, keys)),
+                          f"duplicate table: declared twice ({source}, line {at.group(1)})")
+    if at and message.startswith("Cannot overwrite a value"):
+        line = int(at.group(1))
+        lines = text.splitlines()
+        key = _KEY.match(lines[line - 1]) if line <= len(lines) else None
+        if key:
+            table: list[str] = []
+            counts: dict[str, int] = {}
+            for row in lines[: line - 1]:
+                header = _HEADER.match(row)
+                if header:
+                    name = _dotted(header.group(2))
+                    table = [name]
+                    if header.group(1) == "[[":
+                        counts[name] = counts.get(name, -1) + 1
+                        table.append(str(counts[name]))
+            path = ".".join([*table, _dotted(key.group(1))])
+            return SceneError(path, f"duplicate key: given twice ({source}, line {line})")
+    return SceneError(source, f"invalid TOML ({message})")
+
+
+def _dotted(key: str) -> str:
+    """A TOML key as written (``a . "b"``) -> dotted path ``a.b`` (for messages)."""
+    return ".".join(part.strip().strip("\"'") for part in key.split("."))
 
 
 def load_scene(path_or_text: str | Path | dict, *, set: Mapping[str, float] | None = None) -> Scene:
@@ -1472,10 +1730,7 @@ def load_scene(path_or_text: str | Path | dict, *, set: Mapping[str, float] | No
         data, source = path_or_text, "<dict>"
     elif isinstance(path_or_text, str) and "\n" in path_or_text:
         source = "<string>"
-        try:
-            data = tomllib.loads(path_or_text)
-        except tomllib.TOMLDecodeError as exc:
-            raise SceneError(source, f"invalid TOML ({exc})") from exc
+        data = _parse_toml(path_or_text, source)
         if not data:
             raise SceneError(source, "scene text is empty")
     elif isinstance(path_or_text, (str, Path)):
@@ -1486,6 +1741,8 @@ def load_scene(path_or_text: str | Path | dict, *, set: Mapping[str, float] | No
             "<input>",
             f"expected a path, TOML text or a dict (got {type(path_or_text).__name__})",
         )
+    if set is not None and not isinstance(set, Mapping):
+        raise SceneError("set", f"expected {{path: value}} (got {type(set).__name__})")
     if set:
         data = apply_overrides(data, set)
     return parse_scene(data, source=source)
@@ -1509,6 +1766,8 @@ def apply_overrides(data: dict, overrides: Mapping[str, float]) -> dict:
         raise SceneError("<dict>", f"cannot copy scene data ({exc})") from exc
     if not isinstance(out, dict):
         raise SceneError("<dict>", f"a scene must be a table (got {_fmt(out)})")
+    if not isinstance(overrides, Mapping):
+        raise SceneError("set", f"expected {{path: value}} (got {type(overrides).__name__})")
     for dotted, value in overrides.items():
         if not isinstance(dotted, str) or not dotted:
             raise SceneError("--set", f"parameter path must be a non-empty string (got {dotted!r})")
@@ -1536,15 +1795,20 @@ def _step(node: Any, key: str) -> Any:
     if isinstance(node, dict):
         return node.get(key, _MISSING)
     if isinstance(node, list):
-        if not key.isdigit() or int(key) >= len(node):
+        if not _is_index(key) or int(key) >= len(node):
             return _MISSING
         return node[int(key)]
     return _MISSING
 
 
+def _is_index(key: str) -> bool:
+    """A list index in a dotted path: ASCII digits only ('²'.isdigit() is True)."""
+    return key.isascii() and key.isdigit()
+
+
 def _set_leaf(node: Any, last: str, value: Any, dotted: str, keys: list[str]) -> None:
     if isinstance(node, list):
-        if not last.isdigit() or int(last) >= len(node):
+        if not _is_index(last) or int(last) >= len(node):
             raise _walk_error(dotted, "no such parameter")
         idx: Any = int(last)
         old = node[idx]
@@ -1599,5 +1863,7 @@ def parse_set_arguments(items: list[str]) -> dict[str, float]:
             raise SceneError("--set", f"value of {path} must be a number (got {text!r})") from None
         if not math.isfinite(value):
             raise SceneError("--set", f"value of {path} must be finite (got {text!r})")
+        if path in out:
+            raise SceneError("--set", f"{path} is given twice")
         out[path] = value
     return out
