@@ -163,7 +163,7 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ey, cy, not_dup):
       not_dup: (P, V) bool, False for vertices already counted from the other side.
     Returns a dict of (P, V) arrays: active, gap (m, negative = overlap), point,
     normal and tangent of the contacted face, edge index, share (m), h_x, h_y (m),
-    own_edge (X's face anti-parallel to it, or -1).
+    own_edge (X's face anti-parallel to it, or -1), width_y (m, Y's least width).
     """
     q0, _, ly, ty, ny, emy = ey
     V = xv.shape[1]
@@ -235,6 +235,7 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ey, cy, not_dup):
     h_y = jnp.maximum(jnp.sum((q - cy[:, None, :]) * n, axis=-1), 0.0)
     return dict(active=active, gap=gap, point=xv, normal=n, tangent=t, edge=e,
                 share=share, h_x=h_x, h_y=h_y, own_edge=own_edge,
+                width_y=jnp.broadcast_to(width[:, None], gap.shape),
                 far_gap=jnp.where(parallel, far_gap, gap),
                 far_point=xv + jnp.where(parallel, s_far - s0, 0.0)[..., None] * t)
 
@@ -281,12 +282,17 @@ def narrow_phase(model: Model, verts, centroid, pairs):
     joint = jnp.where(j_face >= 0, j_face, jnp.where(j_own >= 0, j_own, default))
     S = P * 2 * V
     flat = lambda x: x.reshape((S,) + x.shape[3:])  # noqa: E731
-    res = {k: flat(v) for k, v in out.items() if k not in ("h_x", "h_y", "own_edge")}
+    res = {k: flat(v) for k, v in out.items()
+           if k not in ("h_x", "h_y", "own_edge", "width_y")}
     # A centroid on or behind the contact line (a corner reaching round the
     # end of a face) would give h = 0 and, against a rigid wall, an infinite
-    # spring: h is at least a tenth of the block's radius.
-    h_a = jnp.maximum(out["h_x"], 0.1 * model.radius[A])
-    h_b = jnp.maximum(out["h_y"], 0.1 * model.radius[B])
+    # spring: h is at least a tenth of the block's size, its radius or, for an
+    # elongated block, its least width (a 10 m x 0.01 m sliver lying on its
+    # face has h = 5 mm, not 0.5 m: a floor on the radius would make it 100
+    # times too soft). Side s's vertex block has its width from side 1 - s.
+    width = out["width_y"][:, ::-1]
+    h_a = jnp.maximum(out["h_x"], 0.1 * jnp.minimum(model.radius[A], width))
+    h_b = jnp.maximum(out["h_y"], 0.1 * jnp.minimum(model.radius[B], out["width_y"]))
     res.update(a=flat(A), b=flat(B), h_a=flat(h_a), h_b=flat(h_b), joint=flat(joint),
                corner=flat(out["own_edge"] < 0))
     return res

@@ -315,6 +315,7 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
         bolt_k=jnp.asarray(bolts["k"], dtype), bolt_cap=jnp.asarray(bolts["cap"], dtype),
         bolt_pullout=jnp.asarray(bolts["pullout"]),
         cell_D=jnp.asarray(cell_D, dtype), bond_penalty=jnp.asarray(BOND_PENALTY, dtype),
+        verts0=jnp.asarray(verts, dtype), centroid0=jnp.asarray(all_cents, dtype),
         n_blocks=N, n_vertices=V, n_big=len(big), use_cells=use_cells,
         cell_capacity=cell_capacity, linear_solver=linear_solver_for(s.linear_solver, n_rock * D),
         n_bolts=len(bolts["k"]), has_water=water is not None, ndof=D,

@@ -16,14 +16,20 @@ installed bolts) and looks for static equilibrium with large displacements:
     sub-step;
     move and rotate the blocks by du (exact rigid motion), commit the
     spring forces and states.
-  until a sub-step converges (|R| <= tol F_ref, no state change) with a
-  negligible du, or a block has travelled ``max_displacement`` (mechanism).
+  until a sub-step converges (every free block's |R| <= tol times its own
+  force scale, no state change) with a negligible du, or a block has
+  travelled ``max_displacement`` (mechanism).
 
 eps M only shapes the path: the converged answer solves R = 0 whatever eps
 is, and where K_t is singular (a free block, a sliding mechanism) it turns
 the step into a finite move along the mechanism, which the step length
-bounds. A slot whose state flips four times in one sub-step is frozen in its
-last state for the rest of that sub-step, which ends open/close chatter.
+bounds. When even the slip tangent makes no progress (R stays put: a block
+just past limit equilibrium, whose small residual would move it only by
+R / (eps k) an iteration), the step goes the whole step length along the
+mechanism, so that it is followed and reported, not left to creep into the
+iteration limit. A slot whose state flips four times in one sub-step is
+frozen in its last state for the rest of that sub-step, which ends
+open/close chatter.
 """
 
 from __future__ import annotations
@@ -225,11 +231,47 @@ def _evaluate(model: Model, sub: _Sub, du, frozen, frozen_state, prev, band):
     return out
 
 
-def _residual_norm(model: Model, free, R):
-    """max over blocks of max(|Rx|, |Ry|, |M| / radius, |R_strain| / radius) (kN/m)."""
+def _block_residual(model: Model, R):
+    """(N,) max(|Rx|, |Ry|, |M| / radius, |R_strain| / radius) of each block (kN/m)."""
     r = jnp.maximum(jnp.abs(R[:, 0]), jnp.abs(R[:, 1]))
-    r = jnp.maximum(r, jnp.max(jnp.abs(R[:, 2:]), axis=1) / model.radius)
-    return jnp.max(jnp.where(free, r, 0.0))
+    return jnp.maximum(r, jnp.max(jnp.abs(R[:, 2:]), axis=1) / model.radius)
+
+
+def _block_scale(model: Model, sub: _Sub, ev=None):
+    """(N,) force scale (kN/m) of each block's equilibrium test.
+
+    The largest of the block's load and of the forces on it: spring forces
+    (committed, in-situ and water; with ``ev`` also the current ones, |fn| +
+    |fs|), bolt forces, and for a deformable block its stress times area over
+    radius, measured like :func:`_block_residual`. Each block is balanced to
+    the tolerance of its own forces: with one scale for the whole scene (the
+    largest load) a 1 m block on a 1000 m one would pass with a residual of
+    the order of its own weight, and could slide unnoticed.
+    """
+    N = model.n_blocks
+
+    def per_block(c, a, b):
+        # segment_max gives -inf to blocks without any entry.
+        return jnp.maximum(jnp.maximum(jax.ops.segment_max(c, a, N),
+                                       jax.ops.segment_max(c, b, N)), 0.0)
+
+    c = jnp.abs(sub.fn0) + jnp.abs(sub.fs_old) + jnp.abs(sub.pw)
+    if ev is not None:
+        c = jnp.maximum(c, jnp.abs(ev["total_n"]) + jnp.abs(ev["fs"]))
+    s = jnp.maximum(jnp.linalg.norm(sub.load[:, :2], axis=1),
+                    jnp.max(jnp.abs(sub.load[:, 2:]), axis=1) / model.radius)
+    s = jnp.maximum(s, per_block(jnp.where(sub.geo["active"], c, 0.0), sub.geo["a"],
+                                 sub.geo["b"]))
+    if model.n_bolts:
+        bolt = sub.bolt
+        f = jnp.abs(bolt["f_old"])
+        if ev is not None:
+            f = jnp.maximum(f, jnp.abs(ev["bolt_force"]))
+        s = jnp.maximum(s, per_block(jnp.where(bolt["active"], f, 0.0), bolt["a"], bolt["b"]))
+    if model.ndof == 6:
+        stress = jnp.abs(sub.stress) if ev is None else jnp.abs(ev["stress"])
+        s = jnp.maximum(s, jnp.max(stress, axis=1) * model.area / model.radius)
+    return s
 
 
 def _stiffness_terms(model: Model, sub: _Sub, ev, consistent):
@@ -497,13 +539,21 @@ def _newton(model: Model, sub: _Sub, st0):
     """
     S = st0.shape[0]
     N = model.n_blocks
-    # Force scale of the convergence test: the largest block load, or the
-    # largest carried spring force (an in-situ state has large contact forces
-    # and no net load), whichever is larger.
-    load = jnp.where(sub.free, jnp.linalg.norm(sub.load[:, :2], axis=1), 0.0)
-    carried = jnp.max(jnp.abs(sub.fn0) + jnp.abs(sub.fs_old), initial=0.0)
-    tol = model.tol * jnp.maximum(jnp.maximum(jnp.max(load), carried), model.f_ref * 1e-3)
-    band = 0.1 * tol
+    dtype = sub.load.dtype
+    # Force scale of the convergence test, per block (_block_scale): its load
+    # or the largest force on it (an in-situ state has large contact forces
+    # and no net load). No block is asked to balance below 1000 round-offs of
+    # the scene's largest force scale (nor is a scene without loads below
+    # 1e-3 f_ref), which is all that a block without load or contacts has.
+    s0 = _block_scale(model, sub)
+    biggest = jnp.maximum(jnp.max(jnp.where(sub.free, s0, 0.0)), model.f_ref * 1e-3)
+    floor = 1e3 * jnp.finfo(dtype).eps * biggest
+    s0 = jnp.maximum(s0, floor)
+    # Open/close hysteresis of a slot: a tenth of the tolerance of the
+    # smaller free block it touches.
+    s_slot = jnp.minimum(jnp.where(sub.free, s0, jnp.inf)[sub.geo["a"]],
+                         jnp.where(sub.free, s0, jnp.inf)[sub.geo["b"]])
+    band = 0.1 * model.tol * jnp.where(jnp.isfinite(s_slot), s_slot, biggest)
     zeros_s = jnp.zeros(S, jnp.int32)
     allow = 0.02 * model.step_length
     # A small block moves at most a quarter of its radius per sub-step.
@@ -515,8 +565,10 @@ def _newton(model: Model, sub: _Sub, st0):
     def body(c):
         ev = _evaluate(model, sub, c["du"], c["frozen"], c["frozen_state"], c["st"], band)
         changed = (ev["state"] != c["st"]) & sub.geo["active"]
-        rnorm = _residual_norm(model, sub.free, ev["R"])
-        converged = (rnorm <= tol) & ~jnp.any(changed)
+        tol = model.tol * jnp.maximum(s0, _block_scale(model, sub, ev))
+        # Largest residual of a free block relative to its own tolerance.
+        rnorm = jnp.max(jnp.where(sub.free, _block_residual(model, ev["R"]) / tol, 0.0))
+        converged = (rnorm <= 1.0) & ~jnp.any(changed)
         flips = c["flips"] + changed.astype(jnp.int32)
         newly = (flips >= 4) & ~c["frozen"]
         frozen = c["frozen"] | newly
@@ -531,7 +583,9 @@ def _newton(model: Model, sub: _Sub, st0):
             # as Newton's own progress warrants, and no more accurately than
             # the tolerance needs (the residual test below still decides).
             ratio = jnp.where(jnp.isfinite(c["rprev"]), rnorm / c["rprev"], jnp.inf)
-            need = 0.1 * tol / jnp.maximum(jnp.linalg.norm(ev["R"]), jnp.finfo(tol.dtype).tiny)
+            tol_min = jnp.min(jnp.where(sub.free, tol, jnp.inf))
+            need = 0.1 * tol_min / jnp.maximum(jnp.linalg.norm(ev["R"]),
+                                               jnp.finfo(tol.dtype).tiny)
             eta = jnp.clip(jnp.maximum(0.9 * ratio**2, need),
                            _CG_RTOL_MIN[tol.dtype == jnp.float64], _CG_RTOL_MAX)
             ddu = _solve_cg(model, sub, terms, ev["R"], eta)
@@ -542,7 +596,15 @@ def _newton(model: Model, sub: _Sub, st0):
         t_now = _travel(model, c["du"])
         t_step = _travel(model, ddu)
         room = jnp.maximum(step - t_now, 0.0)
-        s_travel = jnp.min(jnp.where(t_step > room, room / jnp.where(t_step > 0, t_step, 1.0), 1.0))
+        fit = jnp.min(jnp.where(t_step > 0, room / jnp.where(t_step > 0, t_step, 1.0), jnp.inf))
+        # Still no progress with the slip tangent: a mechanism whose residual
+        # is small (a block just past limit equilibrium) would only creep, by
+        # R / (eps k) an iteration, and run out of iterations instead of
+        # showing that it moves. Along the mechanism R does not change, so go
+        # the whole step along it (the elastic part of ddu, eps times
+        # smaller, stays negligible) and let the next sub-step follow it.
+        creeping = c["stall"] >= 5
+        s_travel = jnp.where(creeping & jnp.isfinite(fit), fit, jnp.minimum(fit, 1.0))
         # An open slot may close during the step, but not sink deeper than a
         # small allowance: a free block lands on its support, it does not
         # plunge a whole step length into it.
@@ -550,16 +612,16 @@ def _newton(model: Model, sub: _Sub, st0):
         g_pred = ev["gap"] + dn_step
         landing = sub.geo["active"] & (ev["state"] == OPEN) & (ev["gap"] > 0) & (g_pred < -allow)
         drop = jnp.where(landing, ev["gap"] - g_pred, 1.0)
-        s_gap = jnp.min(jnp.where(landing, (ev["gap"] + allow) / drop, 1.0))
+        s_gap = jnp.min(jnp.where(landing, (ev["gap"] + allow) / drop, jnp.inf))
         scale = jnp.minimum(s_travel, s_gap)
-        clipped = (s_travel <= s_gap) & (s_travel < 1.0)
+        clipped = (s_travel <= s_gap) & ((s_travel < 1.0) | creeping)
         du = jnp.where(converged, c["du"], c["du"] + scale * ddu)
         finite = jnp.all(jnp.isfinite(du))
         it = c["it"] + 1
         done = converged | clipped | ~finite | (it >= model.max_iterations)
         return dict(du=du, st=ev["state"], flips=flips, frozen=frozen, frozen_state=frozen_state,
                     it=it, done=done, converged=converged, clipped=clipped & ~converged,
-                    finite=finite, rnorm=rnorm / tol * model.tol, rprev=rnorm, stall=stall)
+                    finite=finite, rnorm=rnorm * model.tol, rprev=rnorm, stall=stall)
 
     init = dict(du=jnp.zeros((N, model.ndof), sub.load.dtype), st=st0, flips=zeros_s,
                 frozen=jnp.zeros(S, bool), frozen_state=zeros_s, it=jnp.array(0),
@@ -576,28 +638,38 @@ def _rotate(r, angle):
     return jnp.stack([cos * r[..., 0] - sin * r[..., 1], sin * r[..., 0] + cos * r[..., 1]], -1)
 
 
-def _move(state: State, du, stress=None):
+def _move(model: Model, state: State, du, stress=None):
     """Move every block by du: exact rigid motion (ux, uy, theta) about its centroid.
+
+    Positions are the start geometry (``model.verts0``, ``model.centroid0``)
+    moved by the accumulated displacement and rotation, so that round-off
+    does not pile up over many load steps: in float32 the move of one step of
+    a thousand is below the resolution of a coordinate, and summing the moves
+    into the coordinates lost a few percent of the displacement.
 
     A deformable block is first strained by (eps_x, eps_y, gamma_xy) about its
     centroid (which stays its centroid); its strain and ``stress`` (the new
     stress, tension positive) then turn with the block.
     """
     th = du[:, 2]
-    r = state.verts - state.centroid[:, None, :]
+    u = state.u + du[:, :2]
+    rot = state.rot + th
+    centroid = model.centroid0 + u
     strain, new_stress = state.strain, state.stress
     if du.shape[1] == 6:
         e = du[:, 3:]
+        r = state.verts - state.centroid[:, None, :]
         r = r + strain_times(e[:, None, :], r)
         tensor = lambda v: v * jnp.array([1.0, 1.0, 0.5], v.dtype)  # noqa: E731
         engineering = lambda v: v * jnp.array([1.0, 1.0, 2.0], v.dtype)  # noqa: E731
         strain = engineering(_rotate_tensor(tensor(state.strain + e), th))
         new_stress = _rotate_tensor(stress, th)
-    centroid = state.centroid + du[:, :2]
-    verts = centroid[:, None, :] + _rotate(r, th[:, None])
-    return dataclasses.replace(state, verts=verts, centroid=centroid,
-                               u=state.u + du[:, :2], rot=state.rot + th, strain=strain,
-                               stress=new_stress)
+        verts = centroid[:, None, :] + _rotate(r, th[:, None])
+    else:
+        r0 = model.verts0 - model.centroid0[:, None, :]
+        verts = centroid[:, None, :] + _rotate(r0, rot[:, None])
+    return dataclasses.replace(state, verts=verts, centroid=centroid, u=u, rot=rot,
+                               strain=strain, stress=new_stress)
 
 
 def water_force(model: Model, geo, prop, water_x, water_y, scale=1.0):
@@ -683,7 +755,7 @@ def _commit(model: Model, state: State, sub: _Sub, pairs, du, ev):
     active = geo["active"]
     opened = (st == OPEN) & ((sub.prop["tension"] > 0) | (ev["gap"] > model.touch_tol))
     failed_new = sub.failed | (active & ~sub.prop["bonded"] & ((st == SLIP) | opened))
-    moved = _move(state, du, ev.get("stress"))
+    moved = _move(model, state, du, ev.get("stress"))
     shape = state.fs.shape
     new_state = dataclasses.replace(
         moved, pairs=pairs, fs=ev["fs"].reshape(shape), fn=ev["fn"].reshape(shape),

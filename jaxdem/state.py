@@ -43,7 +43,7 @@ def _pytree(data: list[str], meta: list[str]):
         "max_displacement", "span_tol", "cos_parallel", "corner_share", "max_iterations",
         "max_substeps",
         "joint_intact", "gamma_w", "bolt_blocks", "bolt_offsets", "bolt_k", "bolt_cap",
-        "bolt_pullout", "cell_D", "bond_penalty",
+        "bolt_pullout", "cell_D", "bond_penalty", "verts0", "centroid0",
     ],
     meta=["n_blocks", "n_vertices", "n_big", "use_cells", "cell_capacity", "linear_solver",
           "n_bolts", "has_water", "ndof"],
@@ -93,6 +93,10 @@ class Model:
         (sigma = D (eps_x, eps_y, gamma_xy)); (0, 3, 3) when blocks are rigid.
       bond_penalty: scalar, stiffness of an intact-rock bond between deformable
         blocks as a multiple of the Hamajima-Kawai spring (eqs. 3-7).
+      verts0: (N, V, 2) m, vertices at the start; centroid0: (N, 2) m, their
+        centroids. A rigid block's position is this reference moved by its
+        accumulated (u, rot), never a sum of many small moves: in float32 a
+        load step's move can be below the resolution of a coordinate.
       n_blocks, n_vertices, n_big, cell_capacity, n_bolts: static sizes.
       ndof: degrees of freedom per block, D: 3 (rigid: ux, uy, rotation) or 6
         (deformable, constant strain: also eps_x, eps_y, gamma_xy).
@@ -140,6 +144,8 @@ class Model:
     bolt_pullout: jax.Array
     cell_D: jax.Array
     bond_penalty: jax.Array
+    verts0: jax.Array
+    centroid0: jax.Array
     n_blocks: int
     n_vertices: int
     n_big: int
