@@ -783,11 +783,20 @@ def _commit(model: Model, state: State, sub: _Sub, pairs, du, ev):
                                 bolt["a"], N)
             + jax.ops.segment_sum(jnp.where((~free[bolt["a"]])[:, None], rows[:, D:D + 3], 0.0),
                                   bolt["b"], N))
+    # The imbalance is relative to the forces in play: the summed loads and
+    # reactions, or, where both are nil (an in-situ stress that balances
+    # itself, with no load), the largest spring force carried, and at least
+    # the convergence test's floor (1e-3 f_ref), so that round-off over
+    # round-off does not read as an imbalance of 1.
+    carried = jnp.max(jnp.where(active, jnp.abs(ev["total_n"]) + jnp.abs(ev["fs"]), 0.0),
+                      initial=0.0)
+    carried = jnp.maximum(carried, 1e-3 * model.f_ref)
     balance = dict(
         applied=jnp.stack([sub.load[:, 0].sum(), sub.load[:, 1].sum(), moment(sub.load).sum()]),
         reaction=jnp.stack([reaction[:, 0].sum(), reaction[:, 1].sum(), moment(reaction).sum()]),
-        scale=jnp.maximum(jnp.sum(jnp.linalg.norm(reaction[:, :2], axis=1)),
-                          jnp.sum(jnp.linalg.norm(sub.load[:, :2], axis=1))),
+        scale=jnp.maximum(jnp.maximum(jnp.sum(jnp.linalg.norm(reaction[:, :2], axis=1)),
+                                      jnp.sum(jnp.linalg.norm(sub.load[:, :2], axis=1))),
+                          carried),
     )
     snapshot = dict(point=geo["point"], normal=geo["normal"], a=a, b=b, active=active,
                     fn=ev["fn"], fs=ev["fs"], pw=ev["total_n"] - ev["fn"], state=st)
@@ -1076,7 +1085,9 @@ def _imbalance(balance) -> float:
     |applied + reaction| over the larger of the summed magnitudes of the
     block loads and of the reactions (forces from fixed blocks, walls and
     their bolts), so that it stays meaningful when the loads cancel out (an
-    in-situ state held by walls on all sides).
+    in-situ state held by walls on all sides), and of the largest spring
+    force carried (no load and no net reaction: a self-balanced in-situ
+    stress; see :func:`_commit`).
     """
     applied = np.asarray(balance["applied"][:2])
     reaction = np.asarray(balance["reaction"][:2])
@@ -1493,6 +1504,11 @@ def _stage_plan(scene) -> list[dict]:
                        or scene.bolts):
         return [dict(name="excavation", first=True, load_steps=None, water_table=None,
                      excavations={e.name for e in excavations})]
+    if not stages and scene.in_situ is not None and scene.in_situ.mode == "uniform":
+        # A uniform in-situ stress leaves self-weight to the first stage; with
+        # no stage, it is applied over the load steps of a "loading" stage.
+        return [dict(name="loading", first=True, load_steps=None, water_table=None,
+                     excavations=set())]
     first = stages[0].name if stages else None
     return [dict(name=st.name, first=st.name == first, load_steps=st.load_steps,
                  water_table=st.water_table,
