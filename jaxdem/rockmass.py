@@ -35,9 +35,12 @@ Algorithm (the UDEC way: cut whole lines, then say which parts of a cut are join
    area / (longest edge)^2 < 1e-3) left by near-coincident cuts are merged into the
    neighbour (same material and excavation) with which they share the longest edge,
    when the union is convex; the trace on the shared edge then disappears and the other
-   one represents both. A sliver between joint traces that cannot be merged is refused
-   with a ``SceneError`` naming the traces ("joints.set1: traces nearly coincide with
-   discontinuities.0, leaving a sliver block ..."). Others are kept.
+   one represents both. A thin sliver (area / (longest edge)^2 < 1e-3) along a joint
+   trace that cannot be merged is refused with a ``SceneError`` naming the traces
+   ("joints.set1: traces nearly coincide with discontinuities.0, leaving a sliver block
+   ..."). Others are kept: a small but well-shaped piece that cannot be merged (a corner
+   cut off where several traces, trace-end cuts and an opening's ray cuts meet) is a
+   small block, not a degenerate one, and the scene is valid.
 6. Mesh (``domain.mesh_size`` h). Every piece is clipped by the square grid of lines
    x = x0 + i h, y = y0 + j h ((x0, y0) the lower-left corner of the domain's bounding box),
    so cells are convex and conform to joints and openings. Tiny or thin cells are merged
@@ -697,13 +700,15 @@ def _refuse_sliver(
     tol: float,
 ) -> None:
     v = work.polys[i]
+    e = np.roll(v, -1, axis=0) - v
+    emax = float(np.max(np.hypot(e[:, 0], e[:, 1])))
+    a = _area(v)
+    if a >= SLIVER_RATIO * emax * emax:
+        return  # small but not thin: keep it
     _, _, src, _ = _label_edges([v], outline, families, lines, tol)
     found = list(dict.fromkeys(s for s in src if s is not None))
     if not found:
         return  # not made by joints: keep it
-    e = np.roll(v, -1, axis=0) - v
-    emax = float(np.max(np.hypot(e[:, 0], e[:, 1])))
-    a = _area(v)
     c = geometry.centroid(v)
     where = f"({c[0]:g}, {c[1]:g})"
     what = (

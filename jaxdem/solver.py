@@ -34,6 +34,7 @@ open/close chatter.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import enum
 import functools
@@ -804,10 +805,17 @@ def _commit(model: Model, state: State, sub: _Sub, pairs, du, ev):
 
 
 def _substep(model: Model, state: State, loads: Loads):
-    """Detect contacts, iterate to equilibrium at fixed geometry, commit the motion."""
+    """Detect contacts, iterate to equilibrium at fixed geometry, commit the motion.
+
+    ``need["new_failures"]`` says whether a spring failed (first slipped or
+    opened) in this sub-step: it then loses its cohesion and tensile strength,
+    which the law applies from the next sub-step on, so the increment cannot
+    end here (a slot that failed would be reported with its intact strength).
+    """
     mdl, sub, st0, pairs, need = _prepare(model, state, loads)
     du, ev, c = _newton(mdl, sub, st0)
     new_state, balance, snapshot = _commit(mdl, state, sub, pairs, du, ev)
+    need = dict(need, new_failures=jnp.any(new_state.failed.reshape(-1) & ~sub.failed))
     return new_state, du, c, need, balance, snapshot
 
 
@@ -834,7 +842,7 @@ def _increment(model: Model, state: State, loads: Loads, tangents=None, skip=Non
         substeps = c["substeps"] + 1
         # The first outcome that holds ends the increment; -1 goes on.
         status = jnp.select(
-            [overflow, ~newton["finite"], newton["converged"] & small,
+            [overflow, ~newton["finite"], newton["converged"] & small & ~need["new_failures"],
              jnp.max(travel) > model.max_displacement,
              (stuck >= 3) | (substeps >= model.max_substeps)],
             [Status.CAPACITY_OVERFLOW, Status.NON_FINITE, Status.CONVERGED, Status.MECHANISM,
@@ -1023,21 +1031,33 @@ def _substep_tangent(model: Model, state: State, loads: Loads, new_state: State,
 # ---------------------------------------------------------------------------
 # Host driver
 
-_COMPILED: dict = {}
+_COMPILED: collections.OrderedDict = collections.OrderedDict()
+MAX_COMPILED = 16
+"""Compiled increments kept in memory (least recently used dropped first)."""
 
 
 def _compiled(fn, *args):
     """``fn`` (jitted) compiled for these argument shapes and static settings; compile time (s).
 
     One compilation per shape: the samples of a sweep and the iterations of a
-    back-analysis reuse it."""
+    back-analysis reuse it. At most :data:`MAX_COMPILED` are kept: a compiled
+    increment holds about 35 MB and hundreds of memory mappings, and a process
+    that solved some hundreds of differently-shaped scenes ran out of mappings
+    and crashed in XLA's compiler. When one is dropped, JAX's own caches (the
+    small host-step programs) are cleared with it; the persistent compilation
+    cache on disk still serves a shape that comes back.
+    """
     leaves, tree = jax.tree.flatten(args)
     key = (fn, tree, tuple((x.shape, str(x.dtype)) for x in leaves))
     if key in _COMPILED:
+        _COMPILED.move_to_end(key)
         return _COMPILED[key], 0.0
     t0 = time.perf_counter()
     compiled = fn.lower(*args).compile()
     _COMPILED[key] = compiled
+    if len(_COMPILED) > MAX_COMPILED:
+        _COMPILED.popitem(last=False)
+        jax.clear_caches()
     return compiled, time.perf_counter() - t0
 
 

@@ -327,6 +327,26 @@ def test_unmergeable_sliver_is_refused_with_the_traces_named():
     assert "nearly coincide" in str(info.value) and "sliver" in str(info.value)
 
 
+def test_small_well_shaped_piece_that_cannot_be_merged_is_kept():
+    # A joint along the floor and a circular opening 0.25 m above it: the piece between
+    # the opening's lowest edge and the floor (0.086 m2, 0.24 m wide) is small against
+    # the 20 m domain and cannot be merged convexly, but it is a block, not a sliver
+    # (found by tests/test_properties.py: it used to be refused as a sliver).
+    joints = {"d": {"kn": 1e6, "ks": 1e5, "friction_deg": 30.0}}
+    rm = generate(
+        rock_scene(
+            outline=[[0, 0], [20, 0], [20, 15], [0, 15]],
+            joints=joints,
+            discontinuities=[{"from": [0, 0], "to": [4, 0], "joint": "d"}],
+            excavations=[{"name": "t", "shape": "circle", "center": [5, 1.5], "radius": 1.25}],
+        )
+    )
+    assert_valid(rm, 300.0)
+    small = min(rm.pieces, key=lambda p: geometry.signed_area(p.vertices))
+    assert geometry.signed_area(small.vertices) == pytest.approx(0.0862, rel=1e-3)
+    assert small.excavation is None
+
+
 def test_no_domain_gives_an_empty_rock_mass():
     scene = parse_scene(
         {

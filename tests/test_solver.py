@@ -169,3 +169,18 @@ def test_increment_vmaps_over_load_factors():
         s1, _ = solver.increment(model, state, solver.make_loads(model, lam * model.f_ext))
         np.testing.assert_allclose(np.asarray(states.u[k]), np.asarray(s1.u), rtol=1e-9, atol=1e-15)
     assert (np.asarray(info["status"]) == solver.Status.CONVERGED).all()
+
+
+def test_compiled_programs_are_bounded(monkeypatch):
+    """Scenes of new shapes compile new increments; only the MAX_COMPILED most recently
+    used are kept (a process that solved hundreds of shapes crashed out of memory
+    mappings), and a dropped shape solves again, to the same answer."""
+    monkeypatch.setattr(solver, "MAX_COMPILED", 2)
+    monkeypatch.setattr(solver, "_COMPILED", type(solver._COMPILED)())
+    first = jaxdem.solve(parse_scene(stack(1)))
+    for n in (2, 3):
+        jaxdem.solve(parse_scene(stack(n)))
+        assert len(solver._COMPILED) <= 2
+    again = jaxdem.solve(parse_scene(stack(1)))
+    assert again.converged and len(solver._COMPILED) <= 2
+    assert again.monitors == first.monitors
