@@ -19,6 +19,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
+from test_cli import SCENE
 from test_scene import _set, rock_scene_dict, setting, valid_scene_dict
 
 import jaxdem
@@ -227,33 +228,8 @@ def test_block_count_estimate_accepts_a_real_fine_model():
 
 # --------------------------------------------------------------------------- files and TOML
 
-SCENE_TOML = """\
-[scene]
-name = "block on base"
-
-[materials.rock]
-E = 1e7
-nu = 0.25
-unit_weight = 25.0
-
-[joints.j]
-kn = 1e7
-ks = 1e7
-friction_deg = 30.0
-
-[[blocks]]
-vertices = [[0.0, 0.0], [4.0, 0.0], [4.0, 1.0], [0.0, 1.0]]
-material = "rock"
-fixed = true
-
-[[blocks]]
-vertices = [[1.5, 1.0], [2.5, 1.0], [2.5, 2.0], [1.5, 2.0]]
-material = "rock"
-
-[[monitors]]
-name = "top"
-point = [2.0, 1.5]
-"""
+# The command-line tests' block on a base, as a file's text (no leading blank line).
+SCENE_TOML = SCENE.format(E="1e7").lstrip("\n")
 
 
 def _after(marker: str, extra: str) -> str:
