@@ -198,21 +198,12 @@ ROCK_GAPS = [
 
 
 @pytest.mark.parametrize(
-    ("mutation", "path", "words"), [pytest.param(m, p, w, id=i) for i, m, p, w in BLOCK_GAPS]
+    ("base", "mutation", "path", "words"),
+    [pytest.param(valid_scene_dict, m, p, w, id=f"block: {i}") for i, m, p, w in BLOCK_GAPS]
+    + [pytest.param(rock_scene_dict, m, p, w, id=f"rock: {i}") for i, m, p, w in ROCK_GAPS],
 )
-def test_block_scene_refusal(mutation, path, words):
-    data = valid_scene_dict()
-    mutation(data)
-    err = _refused(data)
-    assert err.path == path, str(err)
-    assert str(err).startswith(f"{path}: ") and words in str(err), str(err)
-
-
-@pytest.mark.parametrize(
-    ("mutation", "path", "words"), [pytest.param(m, p, w, id=i) for i, m, p, w in ROCK_GAPS]
-)
-def test_rock_scene_refusal(mutation, path, words):
-    data = rock_scene_dict()
+def test_scene_refusal(base, mutation, path, words):
+    data = base()
     mutation(data)
     err = _refused(data)
     assert err.path == path, str(err)
