@@ -114,10 +114,24 @@ def mohr_coulomb(fn_trial, fs_trial, prop: dict, failed, active, prev=None, band
 
 
 def forces_in_state(fn_trial, fs_trial, prop: dict, failed, state):
-    """Spring forces with a given state (used once a chattering slot is frozen)."""
+    """Spring forces (kN/m) with a given state: a frozen slot's, and the held states' tangent.
+
+    OPEN carries nothing; SLIP carries fn_trial and the Mohr-Coulomb limit
+    |fs| = c * share + fn tan(phi) (c zero once failed) in the direction of
+    the trial force; STICK carries the trial forces, but a stuck slot that is
+    not bonded never carries more shear than that limit: there it carries the
+    limit, as :func:`mohr_coulomb` would. Where the state is the one
+    :func:`mohr_coulomb` gives, so are the forces and their derivatives. The
+    normal force of a closed slot is fn_trial whatever its sign (a cap would
+    break that agreement within the open/close hysteresis band): a slot held
+    closed in tension beyond the cut-off is the caller's to refuse (the
+    solver does not accept a sub-step whose blocks do not balance with the
+    law's forces).
+    """
+    bonded = prop["bonded"] & ~failed
     c = jnp.where(failed, 0.0, prop["cohesion"])
     fn = jnp.where(state == OPEN, 0.0, fn_trial)
     limit = jnp.maximum(c + fn * prop["tanphi"], 0.0)
-    fs = jnp.where(state == OPEN, 0.0,
-                   jnp.where(state == SLIP, jnp.sign(fs_trial) * limit, fs_trial))
+    capped = (state == SLIP) | (~bonded & (jnp.abs(fs_trial) > limit))
+    fs = jnp.where(state == OPEN, 0.0, jnp.where(capped, jnp.sign(fs_trial) * limit, fs_trial))
     return fn, fs

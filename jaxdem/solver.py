@@ -23,13 +23,21 @@ installed bolts) and looks for static equilibrium with large displacements:
 eps M only shapes the path: the converged answer solves R = 0 whatever eps
 is, and where K_t is singular (a free block, a sliding mechanism) it turns
 the step into a finite move along the mechanism, which the step length
-bounds. When even the slip tangent makes no progress (R stays put: a block
+bounds. Where slots slip, the elastic (secant) matrix converges only
+linearly; once it has reduced R twice with the states held, or has stalled
+(three iterations without progress), the slip tangent is tried, and kept
+while it reduces R. When the secant iteration
+stalls and even the slip tangent makes no progress (R stays put: a block
 just past limit equilibrium, whose small residual would move it only by
 R / (eps k) an iteration), the step goes the whole step length along the
 mechanism, so that it is followed and reported, not left to creep into the
 iteration limit. A slot whose state flips four times in one sub-step is
 frozen in its last state for the rest of that sub-step, which ends
-open/close chatter.
+open/close chatter. Frozen slots only shape the path: a sub-step converges
+only if every block also balances with the forces the contact law gives
+(a frozen slot at its limit: within the tolerance), and returns those. A
+frozen slot that breaks its law there (stuck beyond its strength, closed
+in tension) takes the law's state and the iteration goes on.
 """
 
 from __future__ import annotations
@@ -194,9 +202,13 @@ def _evaluate(model: Model, sub: _Sub, du, frozen, frozen_state, prev, band):
 
     The springs carry the effective normal force fn (compression positive):
     fn0 - kn * gap, through the tension cut-off and Mohr-Coulomb; the blocks
-    also receive the water force pw on closed joint faces. ``prev`` is the
+    also receive the water force pw on the faces of joint slots, open or
+    closed (:func:`water_force`). ``prev`` is the
     previous iterate's state and ``band`` the open/close hysteresis (kN/m) of
-    :func:`jaxdem.laws.mohr_coulomb`.
+    :func:`jaxdem.laws.mohr_coulomb`. A ``frozen`` slot carries the forces of
+    ``frozen_state`` (:func:`jaxdem.laws.forces_in_state`); ``misfit`` (kN/m)
+    is how far they are from the law's, |d fn| + |d fs| (zero where not
+    frozen), and ``R_law`` the residual with the law's forces everywhere.
     """
     geo = sub.geo
     x = _gather(du, geo["a"], geo["b"])
@@ -206,16 +218,25 @@ def _evaluate(model: Model, sub: _Sub, du, frozen, frozen_state, prev, band):
     fn_trial = sub.fn0 - sub.prop["kn"] * gap
     fs_trial = sub.fs_old + sub.prop["ks"] * ds
     active = geo["active"]
-    fn, fs, st = mohr_coulomb(fn_trial, fs_trial, sub.prop, sub.failed, active, prev, band)
+    fn_l, fs_l, st_l = mohr_coulomb(fn_trial, fs_trial, sub.prop, sub.failed, active, prev, band)
     fn_f, fs_f = forces_in_state(fn_trial, fs_trial, sub.prop, sub.failed, frozen_state)
-    fn = jnp.where(frozen, fn_f, fn)
-    fs = jnp.where(frozen, fs_f, fs)
-    st = jnp.where(frozen, frozen_state, st)
-    total_n = fn + jnp.where(st != OPEN, sub.pw, 0.0) if model.has_water else fn
+    fn = jnp.where(frozen, fn_f, fn_l)
+    fs = jnp.where(frozen, fs_f, fs_l)
+    st = jnp.where(frozen, frozen_state, st_l)
+    # Water presses on a joint's faces whether it is closed or open (within
+    # the contact margin, where the slot is active): the springs carry only
+    # the effective force. Tying pw to the closed state would make the force
+    # jump by pw where a joint opens, and a slot whose water lifts its faces
+    # apart would chatter open/closed with no equilibrium in either state.
+    total_n = fn + sub.pw if model.has_water else fn
+    d_n = jnp.where(frozen & active, fn_l - fn, 0.0)
+    d_s = jnp.where(frozen & active, fs_l - fs, 0.0)
     internal = _scatter(model.n_blocks, geo["a"], geo["b"],
                         sub.Bn * total_n[:, None] - sub.Bs * fs[:, None])
+    to_law = _scatter(model.n_blocks, geo["a"], geo["b"],
+                      sub.Bn * d_n[:, None] - sub.Bs * d_s[:, None])
     out = dict(fn=fn, fs=fs, state=st, gap=gap, fn_trial=fn_trial, fs_trial=fs_trial,
-               total_n=total_n)
+               total_n=total_n, misfit=jnp.abs(d_n) + jnp.abs(d_s), law_state=st_l)
     if model.n_bolts:
         bf, bst = _bolt_law(model, sub, du)
         bolt = sub.bolt
@@ -229,6 +250,7 @@ def _evaluate(model: Model, sub: _Sub, du, frozen, frozen_state, prev, band):
         out["stress"] = sub.stress + dsig
     out["internal"] = internal
     out["R"] = jnp.where(sub.free[:, None], sub.load + internal, 0.0)
+    out["R_law"] = jnp.where(sub.free[:, None], out["R"] + to_law, 0.0)
     return out
 
 
@@ -281,9 +303,11 @@ def _stiffness_terms(model: Model, sub: _Sub, ev, consistent):
     Closed slots carry both springs: for a slipping slot this is the elastic
     (secant) stiffness, which keeps every step of the order of the elastic
     compliance. With ``consistent``, slipping slots lose their shear spring
-    (and yielded bolts theirs): the tangent of the slip law, used once the
-    elastic iteration has stalled, so that a sliding mechanism makes a finite
-    move (bounded by the step length) instead of creeping at elastic speed.
+    (and yielded bolts theirs): the tangent of the slip law (its symmetric
+    part: the coupling d fs / d fn = tan(phi) is left out), tried once the
+    states hold so that slip settles in a few iterations, and used once the
+    elastic iteration stalls so that a sliding mechanism makes a finite move
+    (bounded by the step length) instead of creeping at elastic speed.
     """
     st = ev["state"]
     closed = sub.geo["active"] & (st != OPEN)
@@ -569,16 +593,49 @@ def _newton(model: Model, sub: _Sub, st0):
         tol = model.tol * jnp.maximum(s0, _block_scale(model, sub, ev))
         # Largest residual of a free block relative to its own tolerance.
         rnorm = jnp.max(jnp.where(sub.free, _block_residual(model, ev["R"]) / tol, 0.0))
-        converged = (rnorm <= 1.0) & ~jnp.any(changed)
+        # Frozen slots only shape the path: the answer must balance every
+        # block with the forces of the contact law itself (R_law), within the
+        # same tolerance, so that no state against the law is returned. Where
+        # it does not, the frozen slots with a misfit on an unbalanced block
+        # were frozen on the way to an answer elsewhere (stuck beyond their
+        # strength, closed in tension): they take the law's state, and the
+        # iteration goes on with it (an active-set update).
+        balanced = (rnorm <= 1.0) & ~jnp.any(changed)
+        off = sub.free & (_block_residual(model, ev["R_law"]) > tol)
+        converged = balanced & ~jnp.any(off)
+        a, b = sub.geo["a"], sub.geo["b"]
+        reassign = balanced & c["frozen"] & (ev["misfit"] > 0) & (off[a] | off[b])
         flips = c["flips"] + changed.astype(jnp.int32)
         newly = (flips >= 4) & ~c["frozen"]
         frozen = c["frozen"] | newly
-        frozen_state = jnp.where(newly, ev["state"], c["frozen_state"])
-        # Three iterations in a row without progress or state change: the
-        # secant iteration has stalled on a mechanism; take the slip tangent.
-        slow = (rnorm > 0.98 * c["rprev"]) & ~jnp.any(changed)
-        stall = jnp.where(slow, c["stall"] + 1, 0)
-        terms = _stiffness_terms(model, sub, ev, stall >= 3)
+        frozen_state = jnp.where(newly, ev["state"],
+                                 jnp.where(reassign, ev["law_state"], c["frozen_state"]))
+        # The secant matrix (slipping slots keep their shear spring) converges
+        # only linearly where slots slip, the slower the more the shear springs
+        # dominate (a rate of 0.96 an iteration is common). Once it has
+        # reduced the residual twice in a row with the states held and slots
+        # slipping, the slip tangent is tried, and kept while it reduces the
+        # residual and no state changes. It is not the exact tangent (its
+        # symmetric part), and near a mechanism it is nearly singular: a tried
+        # step that does not reduce the residual, or that would leave the step
+        # length (that step is not taken), hands back to the secant for the
+        # rest of the sub-step. Three secant iterations that barely reduce the
+        # residual (stall) mean a mechanism or slip that the secant cannot
+        # settle: the slip tangent, kept while it reduces the residual, and
+        # ``creeping`` below.
+        still = ~jnp.any(changed)
+        progress = rnorm <= 0.98 * c["rprev"]
+        settled = jnp.where(still & progress, c["settled"] + 1, 0)
+        failed = c["trying"] & ~progress
+        stall = jnp.where(still & ~progress & ~failed, c["stall"] + 1, 0)
+        slipping = jnp.any(sub.geo["active"] & (ev["state"] == SLIP))
+        if model.n_bolts:
+            slipping |= jnp.any(sub.bolt["active"] & (ev["bolt_state"] != 0))
+        untried = c["untried"] & ~failed
+        trying = still & untried & slipping & (c["trying"] | (settled >= 2)
+                                               | (c["tangent"] & progress))
+        tangent = trying | (stall >= 3)
+        terms = _stiffness_terms(model, sub, ev, tangent)
         if model.linear_solver == "cg":
             # Inexact Newton (Eisenstat-Walker, choice 2): solve as accurately
             # as Newton's own progress warrants, and no more accurately than
@@ -616,21 +673,31 @@ def _newton(model: Model, sub: _Sub, st0):
         s_gap = jnp.min(jnp.where(landing, (ev["gap"] + allow) / drop, jnp.inf))
         scale = jnp.minimum(s_travel, s_gap)
         clipped = (s_travel <= s_gap) & ((s_travel < 1.0) | creeping)
+        overshoot = trying & clipped
+        untried = untried & ~overshoot
+        scale = jnp.where(overshoot, 0.0, scale)
+        clipped = clipped & ~overshoot
         du = jnp.where(converged, c["du"], c["du"] + scale * ddu)
         finite = jnp.all(jnp.isfinite(du))
         it = c["it"] + 1
         done = converged | clipped | ~finite | (it >= model.max_iterations)
         return dict(du=du, st=ev["state"], flips=flips, frozen=frozen, frozen_state=frozen_state,
                     it=it, done=done, converged=converged, clipped=clipped & ~converged,
-                    finite=finite, rnorm=rnorm * model.tol, rprev=rnorm, stall=stall)
+                    finite=finite, rnorm=rnorm * model.tol, rprev=rnorm, stall=stall,
+                    settled=settled, trying=trying, untried=untried, tangent=tangent)
 
     init = dict(du=jnp.zeros((N, model.ndof), sub.load.dtype), st=st0, flips=zeros_s,
                 frozen=jnp.zeros(S, bool), frozen_state=zeros_s, it=jnp.array(0),
                 done=jnp.array(False), converged=jnp.array(False), clipped=jnp.array(False),
                 finite=jnp.array(True), rnorm=jnp.array(jnp.inf, sub.load.dtype),
-                rprev=jnp.array(jnp.inf, sub.load.dtype), stall=jnp.array(0))
+                rprev=jnp.array(jnp.inf, sub.load.dtype), stall=jnp.array(0),
+                settled=jnp.array(0), trying=jnp.array(False), untried=jnp.array(True),
+                tangent=jnp.array(False))
     c = jax.lax.while_loop(cond, body, init)
-    ev = _evaluate(model, sub, c["du"], c["frozen"], c["frozen_state"], c["st"], band)
+    # A converged sub-step returns (and commits) the law's own forces and
+    # states, which balance the blocks; one cut short keeps the frozen ones.
+    ev = _evaluate(model, sub, c["du"], c["frozen"] & ~c["converged"], c["frozen_state"], c["st"],
+                   band)
     return c["du"], ev, c
 
 
@@ -786,11 +853,15 @@ def _commit(model: Model, state: State, sub: _Sub, pairs, du, ev):
                                   bolt["b"], N))
     # The imbalance is relative to the forces in play: the summed loads and
     # reactions, or, where both are nil (an in-situ stress that balances
-    # itself, with no load), the largest spring force carried, and at least
-    # the convergence test's floor (1e-3 f_ref), so that round-off over
-    # round-off does not read as an imbalance of 1.
-    carried = jnp.max(jnp.where(active, jnp.abs(ev["total_n"]) + jnp.abs(ev["fs"]), 0.0),
-                      initial=0.0)
+    # itself, with no load), the largest spring force carried at the start or
+    # the end of the sub-step (the forces the convergence test, _block_scale,
+    # was relative to: an in-situ force released to nothing is still the
+    # scale its block was balanced to), and at least the convergence test's
+    # floor (1e-3 f_ref), so that round-off over round-off does not read as
+    # an imbalance of 1.
+    carried = jnp.maximum(jnp.abs(ev["total_n"]) + jnp.abs(ev["fs"]),
+                          jnp.abs(sub.fn0) + jnp.abs(sub.fs_old) + jnp.abs(sub.pw))
+    carried = jnp.max(jnp.where(active, carried, 0.0), initial=0.0)
     carried = jnp.maximum(carried, 1e-3 * model.f_ref)
     balance = dict(
         applied=jnp.stack([sub.load[:, 0].sum(), sub.load[:, 1].sum(), moment(sub.load).sum()]),

@@ -40,8 +40,11 @@ import pytest
 from scenes import ROCK, block_on_incline, incline_frame, rect_on_slope, slope_base, stack
 
 import jaxdem
+from jaxdem import model as model_mod
+from jaxdem import solver
+from jaxdem.contact import narrow_phase
 from jaxdem.geometry import centroid
-from jaxdem.laws import equivalent_stiffness, intact_stiffness
+from jaxdem.laws import equivalent_stiffness, intact_stiffness, slot_properties
 from jaxdem.scene import parse_scene
 
 DTYPES = ["float64", "float32"]
@@ -49,6 +52,7 @@ TOL = {"float64": {"rel": 1e-5, "abs": 0.0}, "float32": {"rel": 1e-3, "abs": 5e-
 E, NU, GAMMA = ROCK["E"], ROCK["nu"], ROCK["unit_weight"]
 KN_I = intact_stiffness(E, NU)[0]  # kPa, eq. 4
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+DATA = Path(__file__).resolve().parent / "data"
 
 
 @functools.cache
@@ -417,6 +421,123 @@ def test_free_falling_block_is_reported_at_once(dtype):
     ux, uy, rot = r.blocks[0]["u"]
     assert uy < -1.0 and ux == 0.0 and rot == 0.0
     assert_matches_float64(d, dtype, r)
+
+
+# The simplest draw of tests/test_properties.py that ended at the iteration limit: a 6 m
+# square of soft rock (no cohesion on intact cuts, the material default) between roller
+# walls on a fixed base, one joint segment across the middle; the rock-mass generation
+# cuts it into 3 columns x 2 rows (intact cuts through the joint's ends).
+SIX_BLOCKS_IN_A_BOX = {
+    "scene": {"name": "six blocks in a box"},
+    "solver": {"load_steps": 1},
+    "materials": {"rock": {"E": 1e6, "nu": 0.15, "unit_weight": 18.0}},
+    "joints": {"fault": {"kn": 1e5, "ks": 1e5, "friction_deg": 15.0}},
+    "domain": {"outline": [[0, 0], [6, 0], [6, 6], [0, 6]], "material": "rock"},
+    "discontinuities": [{"from": [2.46, 3.0], "to": [3.54, 3.0], "joint": "fault"}],
+    "boundaries": [{"side": "bottom", "condition": "fixed"},
+                   {"side": "left", "condition": "roller"},
+                   {"side": "right", "condition": "roller"}],
+}
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_columns_slipping_past_each_other_at_zero_normal_force_converge(dtype):
+    """Six blocks under self-weight: the middle column settles more on its soft joint
+    (kn 1e5 kPa/m) than its neighbours on intact rock, so the vertical interfaces slip,
+    at zero normal force (nothing pushes sideways). With the elastic (secant) matrix,
+    in which slipping slots keep their shear spring, Newton converged at a rate of 0.96
+    an iteration and every sub-step ran into max_iterations (60); with the slip tangent
+    once the states hold, in fewer than 60 in all. Closed forms: the base carries the
+    weight (gamma x 36 m2); the vertical interfaces carry nothing; each column settles
+    as series springs (module docstring): the bottom blocks by W_col h / kn_i on the
+    fixed base (h = 1.5 m, a wall adds no joint term), the outer top blocks by
+    W_top / k_intact more, the middle one by W_top / k_joint more (W per m of width).
+    To 1e-3: the model updates h as the blocks settle, and the strain here is 1e-4."""
+    r = solve(SIX_BLOCKS_IN_A_BOX, dtype)
+    assert_sane(r)
+    assert r.converged and r.stable
+    assert len(r.blocks) == 6
+    iterations = sum(r.stages[0]["iterations"])
+    assert iterations < 60  # the default max_iterations of a single sub-step
+    gamma, kn_i = 18.0, intact_stiffness(1e6, 0.15)[0]
+    assert r.equilibrium["reaction"][1] == pytest.approx(gamma * 36.0, rel=1e-6)
+    c = r.geometry["contacts"]
+    vertical = np.abs(c["normals"][:, 0]) > 0.99
+    tol = {"float64": 1e-6, "float32": 200 * float(np.finfo(np.float32).eps)}[dtype]
+    assert vertical.sum() > 0
+    assert np.abs(c["fn"][vertical]).max() <= 10 * tol * gamma * 36.0
+    base = gamma * 6.0 * 1.5 / kn_i
+    top = {"intact": gamma * 3.0 / k_eq(1.5, 1.5, np.inf, kn_i, kn_i),
+           "joint": gamma * 3.0 / k_eq(1.5, 1.5, 1e5, kn_i, kn_i)}
+    for b in r.blocks:
+        x, y = b["centroid"]
+        expected = base if y < 3.0 else base + top["joint" if 2.46 < x < 3.54 else "intact"]
+        ux, uy, rot = b["u"]
+        assert -uy == pytest.approx(expected, rel=1e-3)
+        assert abs(ux) < 1e-6 * expected and abs(rot) < 1e-6 * expected
+
+
+def strength_violations(model, state) -> list[str]:
+    """Contact springs of ``state`` beyond their strength law (laws.mohr_coulomb).
+
+    Tension cut-off fn >= -t share and Mohr-Coulomb |fs| <= c share + fn tan(phi), fn
+    the effective normal force, c = t = 0 once the slot has failed (slipped or opened);
+    a wall contact bonded from the start has no limit. Allowance: 10 x the solver's
+    tolerance on the largest spring force (the residual tolerance and the open/close
+    hysteresis band are below it), and c, t times 10 touch tolerances of share (the
+    share is recomputed here at the final geometry).
+    """
+    mdl = dataclasses.replace(model, free=model.free & state.alive)
+    geo = narrow_phase(mdl, state.verts, state.centroid, state.pairs)
+    prop = {k: np.asarray(v) for k, v in slot_properties(mdl, geo).items()}
+    flat = lambda x: np.asarray(x).reshape(-1)  # noqa: E731
+    fn, fs = flat(state.fn), flat(state.fs)
+    failed, present = flat(state.failed), flat(state.present)
+    check = present & ~(prop["bonded"] & ~failed)
+    joint = np.asarray(geo["joint"])
+    unit = np.asarray(model.joint_c)[joint] + np.asarray(model.joint_t)[joint]
+    scale = max(float(np.max(np.abs(fn[present]) + np.abs(fs[present]), initial=0.0)),
+                float(model.f_ref))
+    allow = 10.0 * float(model.tol) * scale + np.where(failed, 0.0, unit) * 10.0 * float(
+        model.touch_tol)
+    t = np.where(failed, 0.0, prop["tension"])
+    limit = np.maximum(np.where(failed, 0.0, prop["cohesion"]) + fn * prop["tanphi"], 0.0)
+    return ([f"slot {k}: fn {fn[k]:.6g} < -t {-t[k]:.6g} kN/m"
+             for k in np.nonzero(check & (fn < -t - allow))[0]]
+            + [f"slot {k}: |fs| {abs(fs[k]):.6g} > limit {limit[k]:.6g} kN/m"
+               for k in np.nonzero(check & (np.abs(fs) > limit + allow))[0]])
+
+
+@pytest.mark.parametrize("name", ["frozen_slots_opening", "frozen_slots_water"])
+def test_frozen_chattering_slots_never_give_a_converged_answer_beyond_strength(name):
+    """Two rock masses drawn by tests/test_properties.py (tests/data/NAME.toml) in which
+    slots chatter between states and Newton freezes them. A frozen slot stuck beyond its
+    strength or closed in tension was once accepted as converged. Now every stage that
+    ends converged satisfies every contact's strength law (``strength_violations``), and
+    one that does not reach equilibrium says so (mechanism or iteration limit), never
+    "converged". The opening's loading stage (self-weight, frozen slots on the way)
+    reaches a lawful equilibrium. The water scene converges: its slots chattered because
+    water pressed only on closed joints (the force jumped by pw where one opened); it now
+    presses on open ones too. float64 only: these are the property test's draws."""
+    scene = jaxdem.load_scene(DATA / f"{name}.toml")
+    model, state, layout = model_mod.build(scene)
+    checked = {}
+
+    def stage_end(driver, stage):
+        if driver.status == solver.Status.CONVERGED:
+            checked[stage] = strength_violations(driver.model, driver.state)
+
+    driver = solver.run(scene, model, state, layout, solver.scene_data(scene, layout),
+                        stage_end=stage_end)
+    assert all(not bad for bad in checked.values()), checked
+    if driver.status == solver.Status.CONVERGED:
+        assert not strength_violations(driver.model, driver.state)
+    else:
+        assert driver.status in (solver.Status.MECHANISM, solver.Status.ITERATION_LIMIT)
+    if name == "frozen_slots_opening":
+        assert "initial" in checked
+    else:
+        assert driver.status == solver.Status.CONVERGED
 
 
 def _toppling_example(dtype, **overrides):

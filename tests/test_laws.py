@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxdem.laws import equivalent_stiffness, intact_stiffness, mohr_coulomb
+from jaxdem.laws import equivalent_stiffness, forces_in_state, intact_stiffness, mohr_coulomb
 from jaxdem.state import OPEN, SLIP, STICK
 
 
@@ -64,3 +64,31 @@ def test_laws_vmap_and_grad():
     g = jax.grad(lambda x: f(jnp.full(5, x), fs).sum())(10.0)
     slipping = int((jnp.abs(fs) > 1.0 + 10.0 * np.tan(np.radians(30.0))).sum())
     assert float(g) == pytest.approx(slipping * np.tan(np.radians(30.0)))
+
+
+def test_forces_in_the_law_state_are_the_law_forces_and_their_derivatives():
+    """forces_in_state with the state that mohr_coulomb gives returns its forces and
+    derivatives (the exact tangent of the held states), and a slot held stuck never
+    carries more shear than c + fn tan(phi) (a bonded wall contact has no limit)."""
+    prop = _prop(c=1.0, t=2.0)
+    failed, active = jnp.zeros(5, bool), jnp.ones(5, bool)
+    fn_tr = jnp.array([10.0, 10.0, -1.0, -3.0, 10.0])
+    fs_tr = jnp.array([1.0, 8.0, 0.2, 0.0, -8.0])
+    fn, fs, st = mohr_coulomb(fn_tr, fs_tr, prop, failed, active)
+    np.testing.assert_array_equal(np.asarray(st), [STICK, SLIP, STICK, OPEN, SLIP])
+    held = lambda a, b: forces_in_state(a, b, prop, failed, st)  # noqa: E731
+    law = lambda a, b: mohr_coulomb(a, b, prop, failed, active)[:2]  # noqa: E731
+    np.testing.assert_allclose(np.asarray(held(fn_tr, fs_tr)), np.asarray((fn, fs)))
+    for tangent in [(jnp.ones(5), jnp.zeros(5)), (jnp.zeros(5), jnp.ones(5))]:
+        _, d_held = jax.jvp(held, (fn_tr, fs_tr), tangent)
+        _, d_law = jax.jvp(law, (fn_tr, fs_tr), tangent)
+        np.testing.assert_allclose(np.asarray(d_held), np.asarray(d_law))
+    # Held stuck beyond the limit: the limit, in the direction of the trial force.
+    stick = jnp.full(5, STICK)
+    _, fs_stuck = forces_in_state(fn_tr, fs_tr, prop, failed, stick)
+    limit = np.maximum(1.0 + np.asarray(fn_tr) * np.tan(np.radians(30.0)), 0.0)
+    assert (np.abs(np.asarray(fs_stuck)) <= limit + 1e-12).all()
+    np.testing.assert_allclose(np.asarray(fs_stuck)[[1, 4]], [limit[1], -limit[4]])
+    bonded = dict(prop, bonded=jnp.ones(5, bool))
+    _, fs_bonded = forces_in_state(fn_tr, fs_tr, bonded, failed, stick)
+    np.testing.assert_allclose(np.asarray(fs_bonded), np.asarray(fs_tr))
