@@ -130,9 +130,9 @@ def run_case(name, p, target, max_solves):
     # Implicit gradients with L-BFGS and with Gauss-Newton (Levenberg-Marquardt);
     # L-BFGS with central finite differences. A short warm-up run first, so that
     # the optimisers' own first-call compilation is not timed.
-    for name, optimizer in METHODS:
+    for label, optimizer in METHODS:
         problem = fresh()
-        jac = functools.partial(_finite_differences, problem) if "FD" in name else None
+        jac = functools.partial(_finite_differences, problem) if "FD" in label else None
         forward = (problem.function(jac), problem.theta0)
         back_analyse(scene(start, name), obs, fit=paths, forward=forward, optimizer=optimizer,
                      max_iterations=1)
@@ -142,7 +142,7 @@ def run_case(name, p, target, max_solves):
         fit = back_analyse(scene(start, name), obs, fit=paths, forward=forward,
                            optimizer=optimizer, progress=progress, max_iterations=100,
                            tolerance=1e-10)
-        rows.append((name, hit, fit, problem, ratio))
+        rows.append((label, hit, fit, problem, ratio))
 
     # 3. Nelder-Mead on log(theta).
     problem = fresh()
