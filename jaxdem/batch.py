@@ -77,7 +77,9 @@ def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
       theta: (S, p) values, file units (friction in degrees).
       chunk: samples solved together, a multiple of the number of devices;
         default: on a CPU a few (what stays in cache, see :func:`_chunk_size`),
-        on a GPU as many as fit in memory (at most 1,024 per device).
+        on a GPU as many as fit in memory (at most 1,024 per device). On
+        several CPU devices one per device, and no more is accepted
+        (:func:`_one_per_device`).
       devices: devices to shard each chunk over (default: all local devices
         of the default backend).
       progress: optional callable, called after each chunk with
@@ -98,10 +100,14 @@ def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
             apply_overrides(scene.data, {path: 0.0})
         except SceneError as err:
             raise SceneError(path, err.problem) from None
-    t0 = time.perf_counter()
-    model, state, layout, data0, values, read = _prepared(scene, tuple(params))
     devices = list(devices) if devices is not None else jax.local_devices()
     n_dev = len(devices)
+    if chunk is not None and _one_per_device(devices) and chunk > n_dev:
+        raise SceneError("chunk", f"at most one sample per device on {n_dev} CPU devices "
+                         f"(got {chunk}): batched LAPACK calls on several CPU devices at once "
+                         f"can deadlock in jaxlib (see README, 'Several devices')")
+    t0 = time.perf_counter()
+    model, state, layout, data0, values, read = _prepared(scene, tuple(params))
     S = theta.shape[0]
     per_device = _chunk_size(model, state, -(-S // n_dev), devices)
     size = chunk if chunk is not None else per_device * n_dev
@@ -194,6 +200,8 @@ def _chunk_size(model, state, S: int, devices) -> int:
     of its free memory (the state and its copies inside an increment, and the
     dense matrix and its factor), at most 1,024.
     """
+    if _one_per_device(devices):
+        return 1
     n = model.n_blocks * model.ndof
     itemsize = state.verts.dtype.itemsize
     state_bytes = sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(state))
@@ -202,6 +210,21 @@ def _chunk_size(model, state, S: int, devices) -> int:
         return int(max(1, min(16, S, 4e6 // (state_bytes + matrix_bytes))))
     per = 16 * state_bytes + 4 * matrix_bytes
     return int(max(1, min(1024, S, 0.25 * _free_memory(devices[0]) // per)))
+
+
+def _one_per_device(devices) -> bool:
+    """Whether each device must take one sample at a time: several CPU devices.
+
+    jaxlib 0.10.2's CPU LAPACK kernels (Cholesky, LU) hand each matrix of a
+    batch of more than one to XLA's CPU thread pool and block until it is
+    done. All CPU devices share that pool (as many threads as cores); with
+    several devices running at once every pool thread can block so, and the
+    work they wait for is never run: a deadlock, reproduced with JAX alone
+    (a vmapped while-loop of two Cholesky factorisations on two forced host
+    devices hangs in about half the runs). One sample per device keeps every
+    factorisation unbatched. A single device, or a GPU, is not affected.
+    """
+    return len(devices) > 1 and devices[0].platform == "cpu"
 
 
 def _free_memory(device) -> float:

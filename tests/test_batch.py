@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import jax
 import numpy as np
 import pytest
 from hypothesis import given
@@ -14,7 +15,7 @@ from hypothesis import strategies as st
 from scenes import block_on_incline, jointed_tunnel
 
 import jaxdem
-from jaxdem import solver
+from jaxdem import batch, solver
 from jaxdem.batch import solve_batch
 from jaxdem.differentiable import Problem
 from jaxdem.model import bucket
@@ -127,7 +128,7 @@ scene = parse_scene(block_on_incline(25.0, 30.0))
 theta = np.linspace(20.0, 35.0, 8)[:, None]
 four = solve_batch(scene, ["joints.base.friction_deg"], theta)
 one = solve_batch(scene, ["joints.base.friction_deg"], theta, devices=jax.devices()[:1])
-print(json.dumps(dict(n=len(jax.devices()), four=four.timing["devices"],
+print(json.dumps(dict(n=len(jax.devices()), four=four.timing["devices"], chunk=four.timing["chunk"],
                       one=one.timing["devices"], stable=[bool(s) for s in four.stable],
                       same=bool(np.array_equal(four.stable, one.stable)),
                       diff=float(np.nanmax(np.abs(four.monitors["block"]
@@ -136,8 +137,23 @@ print(json.dumps(dict(n=len(jax.devices()), four=four.timing["devices"],
     res = json.loads(_python(code, {"XLA_FLAGS": "--xla_force_host_platform_device_count=4",
                                     "JAXDEM_COMPILATION_CACHE": "0"}).splitlines()[-1])
     assert res["n"] == 4 and res["four"] == 4 and res["one"] == 1
+    assert res["chunk"] == 4  # one sample per CPU device (batch._one_per_device)
     assert res["same"] and res["stable"] == [False] * 3 + [True] * 5
     assert res["diff"] <= 1e-12
+
+
+def test_several_cpu_devices_take_one_sample_each():
+    """On several CPU devices each takes one sample at a time, and a larger chunk is
+    refused before any work: jaxlib's batched LAPACK kernels on several CPU devices at
+    once can deadlock (batch._one_per_device). One device keeps its cache-sized chunk."""
+    scene = parse_scene(block_on_incline(25.0, 30.0))
+    model, state, _ = jaxdem.model.build(scene)
+    cpu = jax.devices("cpu")[0]
+    assert batch._chunk_size(model, state, 64, [cpu, cpu]) == 1
+    assert batch._chunk_size(model, state, 64, [cpu]) > 1
+    with pytest.raises(SceneError, match="chunk: at most one sample per device"):
+        solve_batch(scene, ["joints.base.friction_deg"], np.full((8, 1), 30.0), chunk=4,
+                    devices=[cpu, cpu])
 
 
 def test_persistent_compilation_cache(tmp_path):
