@@ -192,11 +192,13 @@ def _batch_data(data0: Data, arrays: dict, size: int) -> Data:
 def _chunk_size(model, state, S: int, devices) -> int:
     """Samples per chunk (per device).
 
-    On a CPU, few: a chunk whose arrays stay in cache (about 4 MB: the state's
+    On a CPU, few: a chunk whose arrays stay in cache (about 8 MB: the state's
     arrays and the dense matrix of each sample) is solved fastest per sample.
     Measured on a 2-core CPU with the 59-block test tunnel (0.5 MB a sample):
-    19 ms a sample in chunks of 4, 21 in 8, 39 in 16, 42 in 64
-    (BENCHMARKS.md, "Throughput"). On a GPU, many: as many as fit in a quarter
+    19 ms a sample in chunks of 4, 21 in 8, 39 in 16, 42 in 64; with the
+    52-block benchmark tunnel at pair capacity 256 (0.4 MB a sample): 11.4 ms
+    in chunks of 10, 10.1 in 16, 32 and 64 (BENCHMARKS.md, "Throughput").
+    On a GPU, many: as many as fit in a quarter
     of its free memory (the state and its copies inside an increment, and the
     dense matrix and its factor), at most 1,024.
     """
@@ -207,7 +209,7 @@ def _chunk_size(model, state, S: int, devices) -> int:
     state_bytes = sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(state))
     matrix_bytes = n * n * itemsize if model.linear_solver == "dense" else 0
     if devices[0].platform == "cpu":
-        return int(max(1, min(16, S, 4e6 // (state_bytes + matrix_bytes))))
+        return int(max(1, min(16, S, 8e6 // (state_bytes + matrix_bytes))))
     per = 16 * state_bytes + 4 * matrix_bytes
     return int(max(1, min(1024, S, 0.25 * _free_memory(devices[0]) // per)))
 

@@ -489,9 +489,14 @@ def bucket(n: int) -> int:
 
 
 def _initial_capacity(verts, nv, free, margin, use_cells) -> int:
-    """Pair capacity from the initial layout with head-room (sweep on x, NumPy).
+    """Pair capacity from the initial layout (sweep on x, NumPy), plus 16.
 
-    Large scenes start from 5 pairs per block; the solver grows it on overflow.
+    The head-room is the capacity bucket's (:func:`bucket`: up to 50%): every
+    padded pair costs its 2 V slots in detection and in each Newton iteration,
+    and the solver grows the capacity (one recompilation) on overflow. The
+    52-block benchmark tunnel has 230 candidate pairs: capacity 256, where a
+    head-room of 1.5 times gave 384 and a sweep 25-40% slower (BENCHMARKS.md,
+    "Throughput"). Large scenes start from 5 pairs per block.
     """
     if use_cells:
         return 5 * len(nv) + 16
@@ -504,7 +509,7 @@ def _initial_capacity(verts, nv, free, margin, use_cells) -> int:
                 break
             if lo[j, 1] <= hi[i, 1] and lo[i, 1] <= hi[j, 1] and (free[i] or free[j]):
                 count += 1
-    return int(count * 1.5) + 16
+    return count + 16
 
 
 def _cell_capacity(verts, radius, big, margin) -> int:
