@@ -26,9 +26,9 @@ the step into a finite move along the mechanism, which the step length
 bounds. Where slots slip, the elastic (secant) matrix converges only
 linearly; once it has reduced R twice with the states held, or has stalled
 (three iterations without progress), the slip tangent is tried (on the
-direct paths the exact one, with the coupling of shear to normal force), and
-kept while it reduces R. When the secant iteration
-stalls and even the slip tangent makes no progress (R stays put: a block
+direct paths the exact one, with the coupling of shear to normal force),
+and kept while it reduces R. When the secant iteration stalls and even the
+slip tangent makes no progress (R stays put: a block
 just past limit equilibrium, whose small residual would move it only by
 R / (eps k) an iteration), the step goes the whole step length along the
 mechanism, so that it is followed and reported, not left to creep into the
@@ -305,11 +305,12 @@ def _stiffness_terms(model: Model, sub: _Sub, ev, consistent):
     (secant) stiffness, which keeps every step of the order of the elastic
     compliance. With ``consistent``, slipping slots lose their shear spring
     (and yielded bolts theirs): the tangent of the slip law (its symmetric
-    part; the direct solvers add the coupling d fs / d fn = tan(phi) while it
-    is tried, :func:`_with_slip_coupling`, the cg path does without), tried once the
-    states hold so that slip settles in a few iterations, and used once the
-    elastic iteration stalls so that a sliding mechanism makes a finite move
-    (bounded by the step length) instead of creeping at elastic speed.
+    part; the direct solvers add the coupling d fs / d fn = tan(phi) while
+    it is tried, :func:`_with_slip_coupling`; the cg path does without),
+    tried once the states hold so that slip settles in a few iterations, and
+    used once the elastic iteration stalls so that a sliding mechanism makes
+    a finite move (bounded by the step length) instead of creeping at
+    elastic speed.
     """
     st = ev["state"]
     closed = sub.geo["active"] & (st != OPEN)
