@@ -1047,29 +1047,14 @@ def _fields(obj, names) -> dict:
 def _tangent_terms(model: Model, sub: _Sub, ev):
     """The exact tangent K = -dR/d(du) with the slots' states held, as terms (a, b, L, R, k).
 
-    Per slot, the local derivatives of (fn, fs) with respect to the trial
-    forces (fn_trial = fn0 - kn (gap + Bn x), fs_trial = fs_old + ks Bs x) in
-    the held state: identity when sticking, zero when open, and for a slip
-    d fs / d fn_trial = sign(fs) tan(phi), which makes K unsymmetric.
+    The slip tangent (:func:`_stiffness_terms` with ``consistent``: both
+    springs of a sticking slot, the normal one of a slipping slot, none of an
+    open one; elastic bolts) with the slip law's coupling d fs / d fn_trial =
+    sign(fs) tan(phi), which makes K unsymmetric (:func:`_with_slip_coupling`):
+    the matrix Newton's tried tangent uses on the direct paths.
     """
-    held = ev["state"]
-    law = lambda fn_t, fs_t: forces_in_state(fn_t, fs_t, sub.prop, sub.failed, held)  # noqa: E731
-    one, zero = jnp.ones_like(ev["fn_trial"]), jnp.zeros_like(ev["fn_trial"])
-    _, (nn, sn) = jax.jvp(law, (ev["fn_trial"], ev["fs_trial"]), (one, zero))
-    _, (ns, ss) = jax.jvp(law, (ev["fn_trial"], ev["fs_trial"]), (zero, one))
-    # Springs of empty slots can be undefined (0 x inf): only active ones enter.
-    active = sub.geo["active"]
-    kn = jnp.where(active, sub.prop["kn"], 0.0)
-    ks = jnp.where(active, sub.prop["ks"], 0.0)
-    a, b, Bn, Bs = sub.geo["a"], sub.geo["b"], sub.Bn, sub.Bs
-    terms = [(a, b, Bn, Bn, nn * kn), (a, b, Bn, Bs, -ns * ks), (a, b, Bs, Bn, -sn * kn),
-             (a, b, Bs, Bs, ss * ks)]
-    if model.n_bolts:
-        bolt = sub.bolt
-        elastic = bolt["active"] & (ev["bolt_state"] == 0)
-        terms.append((bolt["a"], bolt["b"], bolt["B"], bolt["B"],
-                      jnp.where(elastic, model.bolt_k, 0.0)))
-    return [jnp.concatenate(x) for x in zip(*terms, strict=True)]
+    terms = _stiffness_terms(model, sub, ev, True)
+    return _with_slip_coupling(model, sub, ev, terms, jnp.ones((), bool))
 
 
 def _tangent_solve(model: Model, sub: _Sub, terms, rhs):
