@@ -417,7 +417,9 @@ def linear_solver_for(choice: str, unknowns: int, *, platform: str | None = None
     solver paths"):
 
     - up to ``_DENSE_UP_TO`` (600) unknowns, 200 rigid blocks: "dense"
-      (Cholesky); on a GPU or TPU up to ``_DENSE_UP_TO_ACCELERATOR`` (1,800).
+      (LU; the limits were measured with Cholesky, which the dense path used
+      before it took the unsymmetric slip tangent); on a GPU or TPU up to
+      ``_DENSE_UP_TO_ACCELERATOR`` (1,800).
       On a 2-core CPU SuperLU is already 1.3 times faster at 576 unknowns
       and 7 times at 1,788;
     - above, on a CPU: "sparse" (SciPy's SuperLU on the host), 4 to 7 times

@@ -30,7 +30,7 @@ Documented extensions and choices:
   placed after excavation); without it the traction is an initial load.
 - ``[solver] regularization`` (default 1e-6, in (0, 1)), ``step_length``
   (m, optional, > 0) and ``linear_solver`` ("auto", "dense", "sparse" or "cg";
-  default "auto": dense Cholesky up to 600 unknowns (1,800 on an accelerator), else
+  default "auto": dense LU up to 600 unknowns (1,800 on an accelerator), else
   sparse direct on a CPU
   and matrix-free CG on an accelerator or in a batch) are
   jaxdem extensions.

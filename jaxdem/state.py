@@ -101,7 +101,7 @@ class Model:
       ndof: degrees of freedom per block, D: 3 (rigid: ux, uy, rotation) or 6
         (deformable, constant strain: also eps_x, eps_y, gamma_xy).
       use_cells: grid broad phase (else all pairs).
-      linear_solver: "dense" (Cholesky), "sparse" (SciPy's sparse LU, on the
+      linear_solver: "dense" (LU), "sparse" (SciPy's sparse LU, on the
         host) or "cg" (matrix-free conjugate gradients); "auto" is resolved by
         :func:`jaxdem.model.linear_solver_for`.
       has_water: the scene has a water table (else no pore-pressure code is compiled).
