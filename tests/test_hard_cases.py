@@ -38,13 +38,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 from scenes import ROCK, block_on_incline, incline_frame, rect_on_slope, slope_base, stack
+from test_properties import strength_violations
 
 import jaxdem
 from jaxdem import model as model_mod
 from jaxdem import solver
-from jaxdem.contact import narrow_phase
 from jaxdem.geometry import centroid
-from jaxdem.laws import equivalent_stiffness, intact_stiffness, slot_properties
+from jaxdem.laws import equivalent_stiffness, intact_stiffness
 from jaxdem.scene import parse_scene
 
 DTYPES = ["float64", "float32"]
@@ -477,43 +477,13 @@ def test_columns_slipping_past_each_other_at_zero_normal_force_converge(dtype):
         assert abs(ux) < 1e-6 * expected and abs(rot) < 1e-6 * expected
 
 
-def strength_violations(model, state) -> list[str]:
-    """Contact springs of ``state`` beyond their strength law (laws.mohr_coulomb).
-
-    Tension cut-off fn >= -t share and Mohr-Coulomb |fs| <= c share + fn tan(phi), fn
-    the effective normal force, c = t = 0 once the slot has failed (slipped or opened);
-    a wall contact bonded from the start has no limit. Allowance: 10 x the solver's
-    tolerance on the largest spring force (the residual tolerance and the open/close
-    hysteresis band are below it), and c, t times 10 touch tolerances of share (the
-    share is recomputed here at the final geometry).
-    """
-    mdl = dataclasses.replace(model, free=model.free & state.alive)
-    geo = narrow_phase(mdl, state.verts, state.centroid, state.pairs)
-    prop = {k: np.asarray(v) for k, v in slot_properties(mdl, geo).items()}
-    flat = lambda x: np.asarray(x).reshape(-1)  # noqa: E731
-    fn, fs = flat(state.fn), flat(state.fs)
-    failed, present = flat(state.failed), flat(state.present)
-    check = present & ~(prop["bonded"] & ~failed)
-    joint = np.asarray(geo["joint"])
-    unit = np.asarray(model.joint_c)[joint] + np.asarray(model.joint_t)[joint]
-    scale = max(float(np.max(np.abs(fn[present]) + np.abs(fs[present]), initial=0.0)),
-                float(model.f_ref))
-    allow = 10.0 * float(model.tol) * scale + np.where(failed, 0.0, unit) * 10.0 * float(
-        model.touch_tol)
-    t = np.where(failed, 0.0, prop["tension"])
-    limit = np.maximum(np.where(failed, 0.0, prop["cohesion"]) + fn * prop["tanphi"], 0.0)
-    return ([f"slot {k}: fn {fn[k]:.6g} < -t {-t[k]:.6g} kN/m"
-             for k in np.nonzero(check & (fn < -t - allow))[0]]
-            + [f"slot {k}: |fs| {abs(fs[k]):.6g} > limit {limit[k]:.6g} kN/m"
-               for k in np.nonzero(check & (np.abs(fs) > limit + allow))[0]])
-
-
 @pytest.mark.parametrize("name", ["frozen_slots_opening", "frozen_slots_water"])
 def test_frozen_chattering_slots_never_give_a_converged_answer_beyond_strength(name):
     """Two rock masses drawn by tests/test_properties.py (tests/data/NAME.toml) in which
     slots chatter between states and Newton freezes them. A frozen slot stuck beyond its
     strength or closed in tension was once accepted as converged. Now every stage that
-    ends converged satisfies every contact's strength law (``strength_violations``), and
+    ends converged satisfies every contact's strength law (the property tests'
+    ``strength_violations``), and
     one that does not reach equilibrium says so (mechanism or iteration limit), never
     "converged". The opening's loading stage (self-weight, frozen slots on the way)
     reaches a lawful equilibrium. The water scene converges: its slots chattered because
@@ -525,13 +495,13 @@ def test_frozen_chattering_slots_never_give_a_converged_answer_beyond_strength(n
 
     def stage_end(driver, stage):
         if driver.status == solver.Status.CONVERGED:
-            checked[stage] = strength_violations(driver.model, driver.state)
+            checked[stage] = strength_violations(driver, float(driver.model.tol))
 
     driver = solver.run(scene, model, state, layout, solver.scene_data(scene, layout),
                         stage_end=stage_end)
     assert all(not bad for bad in checked.values()), checked
     if driver.status == solver.Status.CONVERGED:
-        assert not strength_violations(driver.model, driver.state)
+        assert not strength_violations(driver, float(driver.model.tol))
     else:
         assert driver.status in (solver.Status.MECHANISM, solver.Status.ITERATION_LIMIT)
     if name == "frozen_slots_opening":
