@@ -675,24 +675,29 @@ def _newton(model: Model, sub: _Sub, st0):
         trying = still & untried & slipping & (c["trying"] | (settled >= 2)
                                                | (c["tangent"] & progress))
         tangent = trying | (stall >= 3)
-        terms = _stiffness_terms(model, sub, ev, tangent)
-        if model.linear_solver == "cg":
-            # Inexact Newton (Eisenstat-Walker, choice 2): solve as accurately
-            # as Newton's own progress warrants, and no more accurately than
-            # the tolerance needs (the residual test below still decides).
-            ratio = jnp.where(jnp.isfinite(c["rprev"]), rnorm / c["rprev"], jnp.inf)
-            tol_min = jnp.min(jnp.where(sub.free, tol, jnp.inf))
-            need = 0.1 * tol_min / jnp.maximum(jnp.linalg.norm(ev["R"]),
-                                               jnp.finfo(tol.dtype).tiny)
-            eta = jnp.clip(jnp.maximum(0.9 * ratio**2, need),
-                           _CG_RTOL_MIN[tol.dtype == jnp.float64], _CG_RTOL_MAX)
-            ddu = _solve_cg(model, sub, terms, ev["R"], eta)
-        elif model.linear_solver == "sparse":
-            ddu = _solve_sparse(model, sub, _with_slip_coupling(model, sub, ev, terms, trying),
-                                ev["R"], ~c["done"], ~trying)
-        else:
-            ddu = _solve_dense(model, sub, _with_slip_coupling(model, sub, ev, terms, trying),
-                               ev["R"])
+
+        def newton_step():
+            terms = _stiffness_terms(model, sub, ev, tangent)
+            if model.linear_solver == "cg":
+                # Inexact Newton (Eisenstat-Walker, choice 2): solve as accurately
+                # as Newton's own progress warrants, and no more accurately than
+                # the tolerance needs (the residual test below still decides).
+                ratio = jnp.where(jnp.isfinite(c["rprev"]), rnorm / c["rprev"], jnp.inf)
+                tol_min = jnp.min(jnp.where(sub.free, tol, jnp.inf))
+                need = 0.1 * tol_min / jnp.maximum(jnp.linalg.norm(ev["R"]),
+                                                   jnp.finfo(tol.dtype).tiny)
+                eta = jnp.clip(jnp.maximum(0.9 * ratio**2, need),
+                               _CG_RTOL_MIN[tol.dtype == jnp.float64], _CG_RTOL_MAX)
+                return _solve_cg(model, sub, terms, ev["R"], eta)
+            terms = _with_slip_coupling(model, sub, ev, terms, trying)
+            if model.linear_solver == "sparse":
+                return _solve_sparse(model, sub, terms, ev["R"], ~c["done"] & ~converged, ~trying)
+            return _solve_dense(model, sub, terms, ev["R"])
+
+        # The iterate that converged takes no step: its matrix is not
+        # assembled nor factorised (one factorisation a sub-step; under vmap
+        # cond runs both branches, and the sparse path skips its host solve).
+        ddu = jax.lax.cond(converged, lambda: jnp.zeros_like(c["du"]), newton_step)
         t_now = _travel(model, c["du"])
         t_step = _travel(model, ddu)
         room = jnp.maximum(step - t_now, 0.0)
@@ -1079,7 +1084,6 @@ def _substep_tangent(model: Model, state: State, loads: Loads, new_state: State,
     """Derivatives of one sub-step's new state and snapshot (see :func:`increment_tangent`)."""
     held = new_state.cstate.reshape(-1)
     all_held = jnp.ones(held.shape, bool)
-    p = jax.tree.leaves(dstate)[0].shape[0]
     mf0, sf0, lf0 = (_fields(model, SMOOTH_MODEL), _fields(state, STATE_FLOATS),
                      _fields(loads, LOAD_FLOATS))
 
@@ -1091,7 +1095,7 @@ def _substep_tangent(model: Model, state: State, loads: Loads, new_state: State,
         ld = dataclasses.replace(loads, **lf)
         return _prepare(m, s, ld, new_state.pairs)[1]
 
-    sub = prepare(mf0, sf0, lf0)
+    sub, prepare_lin = jax.linearize(prepare, mf0, sf0, lf0)
     leaves, tree = jax.tree.flatten(sub)
     smooth = [jnp.issubdtype(x.dtype, jnp.inexact) for x in leaves]
     floats = lambda sb: [x for x, f in zip(jax.tree.leaves(sb), smooth, strict=True) if f]  # noqa: E731
@@ -1100,8 +1104,7 @@ def _substep_tangent(model: Model, state: State, loads: Loads, new_state: State,
         it = iter(fl)
         return tree.unflatten([next(it) if f else x for x, f in zip(leaves, smooth, strict=True)])
 
-    dsub = jax.vmap(lambda dm, ds, dl: floats(jax.jvp(prepare, (mf0, sf0, lf0),
-                                                      (dm, ds, dl))[1]))(dmodel, dstate, dloads)
+    dsub = jax.vmap(lambda dm, ds, dl: floats(prepare_lin(dm, ds, dl)))(dmodel, dstate, dloads)
 
     # Equilibrium and commit at fixed geometry, in the held states.
     def settle(mf, fl, sf, x):
@@ -1111,17 +1114,20 @@ def _substep_tangent(model: Model, state: State, loads: Loads, new_state: State,
         s = dataclasses.replace(state, **sf)
         ev = _evaluate(mdl, sb, x, all_held, held, held, 0.0)
         new, _, snap = _commit(mdl, s, sb, new_state.pairs, x, ev)
-        return ev["R"], _fields(new, STATE_FLOATS), {k: snap[k] for k in SNAPSHOT_FLOATS}
+        return (ev["R"], _fields(new, STATE_FLOATS), {k: snap[k] for k in SNAPSHOT_FLOATS}), ev
 
-    primals = (mf0, floats(sub), sf0, du)
-    _, lin = jax.linearize(settle, *primals)
-    none = jax.tree.map(lambda x: jnp.zeros((p,) + x.shape, x.dtype), primals)
-    dR, ds1, dsnap1 = jax.vmap(lin)(dmodel, dsub, dstate, none[3])
+    # Linearised apart in the parameters (at the converged du) and in du: each
+    # evaluates only its own tangent paths, where one linearisation in all four
+    # would carry zero tangents through the other's.
+    fl0 = floats(sub)
+    _, lin_p, ev = jax.linearize(lambda mf, fl, sf: settle(mf, fl, sf, du), mf0, fl0, sf0,
+                                 has_aux=True)
+    dR, ds1, dsnap1 = jax.vmap(lin_p)(dmodel, dsub, dstate)
     mdl = dataclasses.replace(model, free=sub.free)
-    ev = _evaluate(mdl, sub, du, all_held, held, held, 0.0)
     ddu = _tangent_solve(mdl, sub, _tangent_terms(mdl, sub, ev), dR)
     ddu = jnp.where(converged, ddu, 0.0)
-    _, ds2, dsnap2 = jax.vmap(lin)(*none[:3], ddu)
+    _, lin_x = jax.linearize(lambda x: settle(mf0, fl0, sf0, x)[0][1:], du)
+    ds2, dsnap2 = jax.vmap(lin_x)(ddu)
     add = lambda x, y: jax.tree.map(jnp.add, x, y)  # noqa: E731
     return add(ds1, ds2), add(dsnap1, dsnap2)
 
