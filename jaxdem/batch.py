@@ -243,13 +243,18 @@ def _free_memory(device) -> float:
 # ---------------------------------------------------------------------------
 # Batched kernels (one sample per vmap lane; fields = the sample's model fields)
 
+LANES = "lanes"
+"""The vmap axis of the samples (``Model.lanes``): Newton's step is skipped once no lane
+needs it."""
+
+
 def _member_increment(model, fields, state, loads, skip):
-    return _increment(dataclasses.replace(model, **fields), state, loads, skip=skip)
+    return _increment(dataclasses.replace(model, lanes=LANES, **fields), state, loads, skip=skip)
 
 
 def _increment_lanes(model, fields, state, loads, skip):
-    return jax.vmap(_member_increment, in_axes=(None, 0, 0, 0, 0))(model, fields, state, loads,
-                                                                    skip)
+    return jax.vmap(_member_increment, in_axes=(None, 0, 0, 0, 0), axis_name=LANES)(
+        model, fields, state, loads, skip)
 
 
 @functools.lru_cache(maxsize=8)

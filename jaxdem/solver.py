@@ -695,9 +695,14 @@ def _newton(model: Model, sub: _Sub, st0):
             return _solve_dense(model, sub, terms, ev["R"])
 
         # The iterate that converged takes no step: its matrix is not
-        # assembled nor factorised (one factorisation a sub-step; under vmap
-        # cond runs both branches, and the sparse path skips its host solve).
-        ddu = jax.lax.cond(converged, lambda: jnp.zeros_like(c["du"]), newton_step)
+        # assembled nor factorised (one factorisation a sub-step). Under vmap
+        # a cond on a per-member flag would run both branches, so a batch
+        # (model.lanes) skips only when none of its members needs a step; the
+        # sparse path also skips the host solve of each member that does not.
+        idle = converged
+        if model.lanes is not None:
+            idle = jax.lax.psum(jnp.where(converged | c["done"], 0, 1), model.lanes) == 0
+        ddu = jax.lax.cond(idle, lambda: jnp.zeros_like(c["du"]), newton_step)
         t_now = _travel(model, c["du"])
         t_step = _travel(model, ddu)
         room = jnp.maximum(step - t_now, 0.0)

@@ -46,7 +46,7 @@ def _pytree(data: list[str], meta: list[str]):
         "bolt_pullout", "cell_D", "bond_penalty", "verts0", "centroid0",
     ],
     meta=["n_blocks", "n_vertices", "n_big", "use_cells", "cell_capacity", "linear_solver",
-          "n_bolts", "has_water", "ndof"],
+          "n_bolts", "has_water", "ndof", "lanes"],
 )
 @dataclasses.dataclass(frozen=True)
 class Model:
@@ -105,6 +105,9 @@ class Model:
         host) or "cg" (matrix-free conjugate gradients); "auto" is resolved by
         :func:`jaxdem.model.linear_solver_for`.
       has_water: the scene has a water table (else no pore-pressure code is compiled).
+      lanes: the name of the vmap axis when samples are solved side by side
+        (:mod:`jaxdem.batch`), else None: a Newton iteration then skips its
+        factorisation only when every member of the batch has converged.
     """
 
     nv: jax.Array
@@ -155,6 +158,7 @@ class Model:
     n_bolts: int = 0
     has_water: bool = False
     ndof: int = 3
+    lanes: str | None = None
 
 
 @_pytree(
