@@ -167,9 +167,14 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ey, cy, not_dup):
     """
     q0, _, ly, ty, ny, emy = ey
     V = xv.shape[1]
-    rel = xv[:, :, None, :] - q0[:, None, :, :]  # (P, V, V_edges, 2)
-    d = jnp.sum(rel * ny[:, None, :, :], axis=-1)
-    s = jnp.sum(rel * ty[:, None, :, :], axis=-1)
+    # Which face each vertex bears on, and whether it is near, is decided on
+    # values alone (a choice has no derivative): the O(P V^2) vertex-face
+    # tables are built from stop_gradient copies, and only the chosen face's
+    # gap and position are differentiated, O(P V). Sensitivities (jvp of the
+    # detection, jaxdem.differentiable) then carry no V^2 tangents.
+    sg = jax.lax.stop_gradient
+    rel = sg(xv)[:, :, None, :] - sg(q0)[:, None, :, :]  # (P, V, V_edges, 2)
+    d = jnp.sum(rel * sg(ny)[:, None, :, :], axis=-1)
     d = jnp.where(emy[:, None, :], d, -jnp.inf)
     dmax = jnp.max(d, axis=-1)
     # Adjacent faces of each vertex of X: outgoing (v -> v+1) and incoming (v-1 -> v).
@@ -178,23 +183,33 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ey, cy, not_dup):
     prev = jnp.where(k[None, :] > 0, k[None, :] - 1, nvx[:, None] - 1)
     t_in = jnp.take_along_axis(tx, prev[..., None], axis=1)
     l_in = jnp.take_along_axis(lx, prev, axis=1)
-    c_out = jnp.sum(tx[:, :, None, :] * ty[:, None, :, :], axis=-1)  # (P, V, Ve)
-    c_in = jnp.sum(t_in[:, :, None, :] * ty[:, None, :, :], axis=-1)
+    c_out = jnp.sum(sg(tx)[:, :, None, :] * sg(ty)[:, None, :, :], axis=-1)  # (P, V, Ve)
+    c_in = jnp.sum(sg(t_in)[:, :, None, :] * sg(ty)[:, None, :, :], axis=-1)
     par_out = c_out < -model.cos_parallel
     par_in = c_in < -model.cos_parallel
     # A vertex that overlaps near a corner is on the face anti-parallel to its own.
     # "Near" is within the margin, but less than half of Y's least width: the
-    # far face of a thin block is never near.
-    depth = -jnp.sum((q0[:, None, :, :] - q0[:, :, None, :]) * ny[:, :, None, :], axis=-1)
+    # far face of a thin block is never near. The width is the depth of Y's
+    # deepest vertex below its face (face, vertex) found on values, then
+    # evaluated at that pair.
+    depth = -jnp.sum((sg(q0)[:, None, :, :] - sg(q0)[:, :, None, :]) * sg(ny)[:, :, None, :],
+                     axis=-1)
     depth = jnp.where(emy[:, None, :] & emy[:, :, None], depth, -jnp.inf)  # (P, face, vertex)
-    width = jnp.min(jnp.where(emy, jnp.max(depth, axis=-1), jnp.inf), axis=-1)
-    window = jnp.minimum(model.margin, 0.5 * width)
+    deepest = jnp.argmax(depth, axis=-1)  # (P, face)
+    thin = jnp.argmin(jnp.where(emy, jnp.max(depth, axis=-1), jnp.inf), axis=-1)  # (P,)
+    pick = lambda x, i: jnp.take_along_axis(x, i[:, None, None], axis=1)[:, 0]  # noqa: E731
+    v_deep = jnp.take_along_axis(deepest, thin[:, None], axis=1)[:, 0]
+    width = -jnp.sum((pick(q0, v_deep) - pick(q0, thin)) * pick(ny, thin), axis=-1)
+    window = jnp.minimum(model.margin, 0.5 * sg(width))
     near_face = d >= dmax[..., None] - window[:, None, None]
     score = d + jnp.where(near_face & (par_out | par_in), 1e30, 0.0)
     e = jnp.argmax(score, axis=-1).astype(jnp.int32)
     take = lambda x: jnp.take_along_axis(x, e[..., None], axis=-1)[..., 0]  # noqa: E731
-    gap = take(d)
-    s_e = take(s)
+    n = jnp.take_along_axis(ny, e[..., None], axis=1)
+    t = jnp.take_along_axis(ty, e[..., None], axis=1)
+    q = jnp.take_along_axis(q0, e[..., None], axis=1)
+    gap = jnp.sum((xv - q) * n, axis=-1)
+    s_e = jnp.sum((xv - q) * t, axis=-1)
     L_e = jnp.take_along_axis(ly, e, axis=1)
     # A vertex a little past the end of a face still bears on it: blocks whose
     # corners coincide (a regular grid) shift by joint shear, and the contact
@@ -203,9 +218,6 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ey, cy, not_dup):
     near = vmx & not_dup & (dmax <= model.margin) & in_span
     po = take(par_out)
     pi = take(par_in)
-    n = jnp.take_along_axis(ny, e[..., None], axis=1)
-    t = jnp.take_along_axis(ty, e[..., None], axis=1)
-    q = jnp.take_along_axis(q0, e[..., None], axis=1)
     # Overlap of X's anti-parallel face with the contacted face, along that face.
     nxt = jnp.where(k[None, :] + 1 < nvx[:, None], k[None, :] + 1, 0)
     other = jnp.where(po[..., None], jnp.take_along_axis(xv, nxt[..., None], axis=1),
