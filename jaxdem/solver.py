@@ -936,6 +936,11 @@ def _substep(model: Model, state: State, loads: Loads):
     end here (a slot that failed would be reported with its intact strength).
     """
     mdl, sub, st0, pairs, need = _prepare(model, state, loads)
+    return _settle(mdl, state, sub, st0, pairs, need)
+
+
+def _settle(mdl: Model, state: State, sub: _Sub, st0, pairs, need):
+    """The rest of :func:`_substep` once contacts are detected: Newton, then commit."""
     du, ev, c = _newton(mdl, sub, st0)
     new_state, balance, snapshot = _commit(mdl, state, sub, pairs, du, ev)
     need = dict(need, new_failures=jnp.any(new_state.failed.reshape(-1) & ~sub.failed))
@@ -957,7 +962,11 @@ def _increment(model: Model, state: State, loads: Loads, tangents=None, skip=Non
         return c["status"] < 0
 
     def body(c):
-        st_new, du, newton, need, balance, snap = _substep(model, c["state"], loads)
+        if tangents is None:
+            st_new, du, newton, need, balance, snap = _substep(model, c["state"], loads)
+        else:
+            (st_new, du, newton, need, balance, snap), (dstate, dsnap) = _substep_tangent(
+                model, c["state"], loads, tangents["model"], c["dstate"], tangents["loads"])
         overflow = (need["pairs"] > state.capacity) | need["cell_full"]
         travel = c["travel"] + _travel(model, du)
         small = jnp.max(_travel(model, du)) <= model.touch_tol
@@ -980,9 +989,6 @@ def _increment(model: Model, state: State, loads: Loads, tangents=None, skip=Non
                    cell_full=c["cell_full"] | need["cell_full"],
                    approximate=c["approximate"] | ~newton["converged"])
         if tangents is not None:
-            dstate, dsnap = _substep_tangent(model, c["state"], loads, st_new, du,
-                                             newton["converged"], tangents["model"],
-                                             c["dstate"], tangents["loads"])
             out.update(dstate=hold(c["dstate"], dstate), dsnapshot=dsnap)
         return out
 
@@ -1084,23 +1090,31 @@ def _tangent_solve(model: Model, sub: _Sub, terms, rhs):
     return x.T.reshape(rhs.shape)
 
 
-def _substep_tangent(model: Model, state: State, loads: Loads, new_state: State, du, converged,
-                     dmodel, dstate, dloads):
-    """Derivatives of one sub-step's new state and snapshot (see :func:`increment_tangent`)."""
-    held = new_state.cstate.reshape(-1)
-    all_held = jnp.ones(held.shape, bool)
+def _substep_tangent(model: Model, state: State, loads: Loads, dmodel, dstate, dloads):
+    """:func:`_substep` and the derivatives of its new state and snapshot.
+
+    Returns (the outputs of :func:`_substep`, (dstate, dsnapshot)); see
+    :func:`increment_tangent`.
+    """
     mf0, sf0, lf0 = (_fields(model, SMOOTH_MODEL), _fields(state, STATE_FLOATS),
                      _fields(loads, LOAD_FLOATS))
 
     # Geometry, detection and history (the candidate pairs of this sub-step are
-    # integers: no derivative), differentiated once for all p parameters.
+    # integers: no derivative), linearised once: the forward sub-step iterates
+    # on its primal, and its tangent serves all p parameters.
     def prepare(mf, sf, lf):
         m = dataclasses.replace(model, **mf)
         s = dataclasses.replace(state, **sf)
         ld = dataclasses.replace(loads, **lf)
-        return _prepare(m, s, ld, new_state.pairs)[1]
+        _, sub, st0, pairs, need = _prepare(m, s, ld)
+        return sub, (st0, pairs, need)
 
-    sub, prepare_lin = jax.linearize(prepare, mf0, sf0, lf0)
+    sub, prepare_lin, (st0, pairs, need) = jax.linearize(prepare, mf0, sf0, lf0, has_aux=True)
+    mdl = dataclasses.replace(model, free=sub.free)
+    forward = _settle(mdl, state, sub, st0, pairs, need)
+    new_state, du, converged = forward[0], forward[1], forward[2]["converged"]
+    held = new_state.cstate.reshape(-1)
+    all_held = jnp.ones(held.shape, bool)
     leaves, tree = jax.tree.flatten(sub)
     smooth = [jnp.issubdtype(x.dtype, jnp.inexact) for x in leaves]
     floats = lambda sb: [x for x, f in zip(jax.tree.leaves(sb), smooth, strict=True) if f]  # noqa: E731
@@ -1118,7 +1132,7 @@ def _substep_tangent(model: Model, state: State, loads: Loads, new_state: State,
         mdl = dataclasses.replace(m, free=sb.free)
         s = dataclasses.replace(state, **sf)
         ev = _evaluate(mdl, sb, x, all_held, held, held, 0.0)
-        new, _, snap = _commit(mdl, s, sb, new_state.pairs, x, ev)
+        new, _, snap = _commit(mdl, s, sb, pairs, x, ev)
         return (ev["R"], _fields(new, STATE_FLOATS), {k: snap[k] for k in SNAPSHOT_FLOATS}), ev
 
     # Linearised apart in the parameters (at the converged du) and in du: each
@@ -1128,13 +1142,12 @@ def _substep_tangent(model: Model, state: State, loads: Loads, new_state: State,
     _, lin_p, ev = jax.linearize(lambda mf, fl, sf: settle(mf, fl, sf, du), mf0, fl0, sf0,
                                  has_aux=True)
     dR, ds1, dsnap1 = jax.vmap(lin_p)(dmodel, dsub, dstate)
-    mdl = dataclasses.replace(model, free=sub.free)
     ddu = _tangent_solve(mdl, sub, _tangent_terms(mdl, sub, ev), dR)
     ddu = jnp.where(converged, ddu, 0.0)
     _, lin_x = jax.linearize(lambda x: settle(mf0, fl0, sf0, x)[0][1:], du)
     ds2, dsnap2 = jax.vmap(lin_x)(ddu)
     add = lambda x, y: jax.tree.map(jnp.add, x, y)  # noqa: E731
-    return add(ds1, ds2), add(dsnap1, dsnap2)
+    return forward, (add(ds1, ds2), add(dsnap1, dsnap2))
 
 
 # ---------------------------------------------------------------------------
@@ -1282,15 +1295,22 @@ def _preload(model: Model, state: State, loads: Loads, sigma, surface_y, gamma, 
 def make_loads(model: Model, force, water_x=None, water_y=None, bolt_active=None,
                water_scale=1.0) -> Loads:
     """Loads for one increment: block forces (N, 3), optional water table and bolt switches."""
+    # From host arrays (the driver's) the Loads are built in NumPy and sent
+    # to the device in one transfer; from JAX arrays (under jit or vmap),
+    # with jax.numpy.
+    traced = any(isinstance(x, jax.Array)
+                 for x in (force, water_x, water_y, bolt_active, water_scale))
+    xp = jnp if traced else np
     dtype = model.radius.dtype
-    no_water = jnp.array([0.0, 1.0], dtype), jnp.array([-1e30, -1e30], dtype)
-    return Loads(
-        force=jnp.asarray(force, dtype),
-        water_x=no_water[0] if water_x is None else jnp.asarray(water_x, dtype),
-        water_y=no_water[1] if water_y is None else jnp.asarray(water_y, dtype),
-        water_scale=jnp.asarray(water_scale, dtype),
-        bolt_active=(jnp.ones(model.n_bolts, bool) if bolt_active is None
-                     else jnp.asarray(bolt_active)))
+    no_water = xp.array([0.0, 1.0], dtype), xp.array([-1e30, -1e30], dtype)
+    loads = Loads(
+        force=xp.asarray(force, dtype),
+        water_x=no_water[0] if water_x is None else xp.asarray(water_x, dtype),
+        water_y=no_water[1] if water_y is None else xp.asarray(water_y, dtype),
+        water_scale=xp.asarray(water_scale, dtype),
+        bolt_active=(xp.ones(model.n_bolts, bool) if bolt_active is None
+                     else xp.asarray(bolt_active, bool)))
+    return loads if traced else jax.device_put(loads)
 
 
 @dataclasses.dataclass
@@ -1405,18 +1425,22 @@ def _release_with_tangent(centroid, snap, removed, dcentroid, dsnap, ndof):
 @functools.partial(jax.jit, static_argnames=("mode",))
 def _preload_tangent(model: Model, state: State, loads: Loads, args, dmodel, dloads, dargs,
                      mode: str):
-    """Derivatives (p, ...) of the in-situ state of :func:`_preload`.
+    """:func:`_preload` (its state and overflow flag) and the derivatives (p, ...) of its state.
 
-    args = (sigma, surface_y, gamma, k0) and dargs their derivatives (p, ...)."""
+    args = (sigma, surface_y, gamma, k0) and dargs their derivatives (p, ...).
+    One compiled call: the plain :func:`_preload` runs op by op (compiling it
+    would cost seconds for a millisecond saved in a single solve), and the
+    linearisation gives its values with the derivatives.
+    """
     def pre(mf, lf, a):
         m = dataclasses.replace(model, **mf)
         ld = dataclasses.replace(loads, **lf)
-        new, _ = _preload(m, state, ld, *a, mode=mode)
-        return _fields(new, STATE_FLOATS)
+        new, overflow = _preload(m, state, ld, *a, mode=mode)
+        return _fields(new, STATE_FLOATS), (new, overflow)
 
     primals = (_fields(model, SMOOTH_MODEL), _fields(loads, LOAD_FLOATS), args)
-    return jax.vmap(lambda dm, dl, da: jax.jvp(pre, primals, (dm, dl, da))[1])(
-        dmodel, dloads, dargs)
+    _, lin, (new, overflow) = jax.linearize(pre, *primals, has_aux=True)
+    return new, overflow, jax.vmap(lin)(dmodel, dloads, dargs)
 
 
 class _Driver:
@@ -1502,16 +1526,20 @@ class _Driver:
         args = tuple(jnp.asarray(x[0], self.layout.dtype)
                      for x in (data.sigma, data.surface, data.gamma, data.k0))
         loads, dloads = self.loads(base)
+        if self.dstate is not None:
+            dargs = tuple(jnp.asarray(x[1:], self.layout.dtype)
+                          for x in (data.sigma, data.surface, data.gamma, data.k0))
         while True:
-            st, overflow = _preload(self.model, self.state, loads, *args, mode=mode)
+            if self.dstate is None:
+                st, overflow = _preload(self.model, self.state, loads, *args, mode=mode)
+            else:
+                st, overflow, dstate = _preload_tangent(self.model, self.state, loads, args,
+                                                        data.dmodel, dloads, dargs, mode=mode)
             if not bool(overflow):
                 break
             self.state = grow_capacity(self.state, model_mod.bucket(2 * self.state.capacity))
         if self.dstate is not None:
-            dargs = tuple(jnp.asarray(x[1:], self.layout.dtype)
-                          for x in (data.sigma, data.surface, data.gamma, data.k0))
-            self.dstate = _preload_tangent(self.model, self.state, loads, args, data.dmodel,
-                                           dloads, dargs, mode=mode)
+            self.dstate = dstate
         self.state = st
 
 
