@@ -88,7 +88,7 @@ def _vector(problem, obs):
     return np.array([problem.keys.index(k) for k in keys])
 
 
-def gradient_cost(problem, theta, repeats=7):
+def gradient_cost(problem, theta, repeats=21):
     """Median times (s) of a plain solve and of a solve with sensitivities, at fresh points."""
     plain, sens = [], []
     for k in range(repeats):
