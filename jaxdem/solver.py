@@ -936,10 +936,10 @@ def _substep(model: Model, state: State, loads: Loads):
     end here (a slot that failed would be reported with its intact strength).
     """
     mdl, sub, st0, pairs, need = _prepare(model, state, loads)
-    return _settle(mdl, state, sub, st0, pairs, need)
+    return _newton_and_commit(mdl, state, sub, st0, pairs, need)
 
 
-def _settle(mdl: Model, state: State, sub: _Sub, st0, pairs, need):
+def _newton_and_commit(mdl: Model, state: State, sub: _Sub, st0, pairs, need):
     """The rest of :func:`_substep` once contacts are detected: Newton, then commit."""
     du, ev, c = _newton(mdl, sub, st0)
     new_state, balance, snapshot = _commit(mdl, state, sub, pairs, du, ev)
@@ -1111,7 +1111,7 @@ def _substep_tangent(model: Model, state: State, loads: Loads, dmodel, dstate, d
 
     sub, prepare_lin, (st0, pairs, need) = jax.linearize(prepare, mf0, sf0, lf0, has_aux=True)
     mdl = dataclasses.replace(model, free=sub.free)
-    forward = _settle(mdl, state, sub, st0, pairs, need)
+    forward = _newton_and_commit(mdl, state, sub, st0, pairs, need)
     new_state, du, converged = forward[0], forward[1], forward[2]["converged"]
     held = new_state.cstate.reshape(-1)
     all_held = jnp.ones(held.shape, bool)
