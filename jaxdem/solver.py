@@ -814,21 +814,17 @@ def bolt_geometry(model: Model, state: State):
     return dict(a=j, b=i, point_a=p2, point_b=p1, e=e)
 
 
-def _prepare(model: Model, state: State, loads: Loads, pairs=None):
+def _prepare(model: Model, state: State, loads: Loads):
     """Detect contacts at the current geometry and carry their history: a sub-step's data.
 
     Returns (mdl, sub, st0, pairs, need): the model with ``free`` restricted to
     the blocks alive now, the :class:`_Sub`, the slots' starting states, the
     pair list and what the contact list needed (``pairs``, ``cell_full``).
-    ``pairs``, if given, is the candidate list already found at this geometry.
     """
     N = model.n_blocks
     free = model.free & state.alive
     mdl = dataclasses.replace(model, free=free)
-    if pairs is None:
-        pairs, count, cell_full = broad_phase(mdl, state.verts, state.capacity, state.alive)
-    else:
-        count, cell_full = jnp.zeros((), jnp.int32), jnp.zeros((), bool)
+    pairs, count, cell_full = broad_phase(mdl, state.verts, state.capacity, state.alive)
     hist = remap_history(state, pairs, N)
     geo = narrow_phase(mdl, state.verts, state.centroid, pairs)
     prop = slot_properties(mdl, geo)
@@ -1298,9 +1294,9 @@ def make_loads(model: Model, force, water_x=None, water_y=None, bolt_active=None
     # From host arrays (the driver's) the Loads are built in NumPy and sent
     # to the device in one transfer; from JAX arrays (under jit or vmap),
     # with jax.numpy.
-    traced = any(isinstance(x, jax.Array)
+    from_jax = any(isinstance(x, jax.Array)
                  for x in (force, water_x, water_y, bolt_active, water_scale))
-    xp = jnp if traced else np
+    xp = jnp if from_jax else np
     dtype = model.radius.dtype
     no_water = xp.array([0.0, 1.0], dtype), xp.array([-1e30, -1e30], dtype)
     loads = Loads(
@@ -1310,7 +1306,7 @@ def make_loads(model: Model, force, water_x=None, water_y=None, bolt_active=None
         water_scale=xp.asarray(water_scale, dtype),
         bolt_active=(xp.ones(model.n_bolts, bool) if bolt_active is None
                      else xp.asarray(bolt_active, bool)))
-    return loads if traced else jax.device_put(loads)
+    return loads if from_jax else jax.device_put(loads)
 
 
 @dataclasses.dataclass
