@@ -1519,23 +1519,19 @@ class _Driver:
     def preload(self, scene, base):
         """The in-situ state (contact forces of the in-situ stress at zero displacement)."""
         data, mode = self.data, scene.in_situ.mode
-        args = tuple(jnp.asarray(x[0], self.layout.dtype)
-                     for x in (data.sigma, data.surface, data.gamma, data.k0))
+        stacks = (data.sigma, data.surface, data.gamma, data.k0)
+        args = tuple(jnp.asarray(x[0], self.layout.dtype) for x in stacks)
         loads, dloads = self.loads(base)
-        if self.dstate is not None:
-            dargs = tuple(jnp.asarray(x[1:], self.layout.dtype)
-                          for x in (data.sigma, data.surface, data.gamma, data.k0))
         while True:
             if self.dstate is None:
                 st, overflow = _preload(self.model, self.state, loads, *args, mode=mode)
             else:
-                st, overflow, dstate = _preload_tangent(self.model, self.state, loads, args,
-                                                        data.dmodel, dloads, dargs, mode=mode)
+                dargs = tuple(jnp.asarray(x[1:], self.layout.dtype) for x in stacks)
+                st, overflow, self.dstate = _preload_tangent(
+                    self.model, self.state, loads, args, data.dmodel, dloads, dargs, mode=mode)
             if not bool(overflow):
                 break
             self.state = grow_capacity(self.state, model_mod.bucket(2 * self.state.capacity))
-        if self.dstate is not None:
-            self.dstate = dstate
         self.state = st
 
 
