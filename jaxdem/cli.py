@@ -461,6 +461,7 @@ def _result_summary(result: Any) -> str:
         moving = ", ".join(ids[:20])
         more = f" (+{len(ids) - 20} more)" if len(ids) > 20 else ""
         lines.append(f"stable: NO, moving blocks: {moving}{more}" if moving else "stable: NO")
+    lines += [f"warning: {w}" for w in getattr(result, "warnings", None) or []]
     lines += _monitor_table(result.monitors or {})
     contacts = result.contacts or {}
     if contacts:

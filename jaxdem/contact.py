@@ -202,7 +202,14 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ey, cy, not_dup):
     width = -jnp.sum((pick(q0, v_deep) - pick(q0, thin)) * pick(ny, thin), axis=-1)
     window = jnp.minimum(model.margin, 0.5 * sg(width))
     near_face = d >= dmax[..., None] - window[:, None, None]
-    score = d + jnp.where(near_face & (par_out | par_in), 1e30, 0.0)
+    # Among the near faces anti-parallel to one of the vertex's own, the least
+    # penetrated; without one, the least penetrated face. (A bonus added to d
+    # rounded d away: at a corner of Y where both of X's faces are anti-parallel
+    # to one of Y's, the choice fell to the order of Y's edges, and a mirrored
+    # scene chose the other face.)
+    eligible = near_face & (par_out | par_in)
+    score = jnp.where(jnp.any(eligible, axis=-1, keepdims=True),
+                      jnp.where(eligible, d, -jnp.inf), d)
     e = jnp.argmax(score, axis=-1).astype(jnp.int32)
     take = lambda x: jnp.take_along_axis(x, e[..., None], axis=-1)[..., 0]  # noqa: E731
     n = jnp.take_along_axis(ny, e[..., None], axis=1)
@@ -275,14 +282,22 @@ def narrow_phase(model: Model, verts, centroid, pairs):
     vmb = model.vmask[b] & valid[:, None]
     ea, eb = edges(va, nva), edges(vb, nvb)
     ca, cb = centroid[a], centroid[b]
-    s0 = _vertex_edge(model, va, nva, vma, ca, eb, cb, jnp.ones((P, V), bool))
+    every = jnp.ones((P, V), bool)
+    s0 = _vertex_edge(model, va, nva, vma, ca, eb, cb, every)
+    s1 = _vertex_edge(model, vb, nvb, vmb, cb, ea, ca, every)
     # A vertex of b at a contact point of a vertex of a (within that point's
-    # overlap) is the same contact point: it is counted once, from a.
-    dv = vb[:, :, None, :] - va[:, None, :, :]
-    reach = 1.5 * jnp.abs(s0["gap"]) + model.span_tol
-    coincide = jnp.any((jnp.sum(dv * dv, axis=-1) <= reach[:, None, :] ** 2)
-                       & s0["active"][:, None, :], axis=-1)
-    s1 = _vertex_edge(model, vb, nvb, vmb, cb, ea, ca, ~coincide)
+    # overlap) is the same contact point, seen from both sides: each side's slot
+    # takes half of it. Keeping one side's only (the lower block index's) made
+    # the answer depend on how the blocks are numbered: at a junction of several
+    # blocks the two sides' points can bear on different faces, and a mirrored
+    # scene, numbered otherwise, got other springs (tests/test_metamorphic.py).
+    dv = vb[:, :, None, :] - va[:, None, :, :]  # (P, V of b, V of a)
+    reach = (1.5 * jnp.maximum(jnp.abs(s0["gap"])[:, None, :], jnp.abs(s1["gap"])[:, :, None])
+             + model.span_tol)
+    same = ((jnp.sum(dv * dv, axis=-1) <= reach**2) & s0["active"][:, None, :]
+            & s1["active"][:, :, None])
+    s0["share"] = jnp.where(jnp.any(same, axis=1), 0.5, 1.0) * s0["share"]
+    s1["share"] = jnp.where(jnp.any(same, axis=2), 0.5, 1.0) * s1["share"]
     out = {k: jnp.stack([s0[k], s1[k]], axis=1) for k in s0}
     A = jnp.stack([jnp.broadcast_to(a[:, None], (P, V)), jnp.broadcast_to(b[:, None], (P, V))], 1)
     B = jnp.stack([jnp.broadcast_to(b[:, None], (P, V)), jnp.broadcast_to(a[:, None], (P, V))], 1)

@@ -63,7 +63,7 @@ DIFFERENTIABLE = (
     "joints.NAME.{kn, ks, friction_deg, cohesion, tensile_strength}",
     "materials.NAME.{E, nu, unit_weight, cohesion, friction_deg, tensile_strength}",
     "in_situ.{k0, sigma_xx, sigma_yy, sigma_xy, surface_y}",
-    "bolts.I.{stiffness, yield_force, anchor_capacity}",
+    "bolts.I.{stiffness, yield_force, anchor_capacity, compression}",
     "supports.I.pressure",
     "water.unit_weight",
     "water.table.K.1 (water level at a table point)",
@@ -337,7 +337,7 @@ class _ParameterMap:
                     keys[1] == "surface_y" and scene.in_situ.mode == "gravity"):
                 return dict(kind="in_situ", field=keys[1], value=getattr(scene.in_situ, keys[1]))
         if sec == "bolts" and len(keys) == 3 and keys[2] in (
-                "stiffness", "yield_force", "anchor_capacity"):
+                "stiffness", "yield_force", "anchor_capacity", "compression"):
             i = int(keys[1])
             return dict(kind="bolt", index=i, field=keys[2],
                         value=getattr(scene.bolts[i], keys[2]))
@@ -443,12 +443,17 @@ class _ParameterMap:
                 else:
                     arr[{"k0": "k0", "surface_y": "surface"}[f]] = x
             elif kind == "bolt":
-                i, b = kd["index"], scene.bolts[kd["index"]]
+                # The scene bolt's sub-bolts (model._bolts), each with its share.
+                b = scene.bolts[kd["index"]]
+                i = np.nonzero(np.asarray(layout.bolt_of) == kd["index"])[0]
+                w = jnp.asarray(np.asarray(layout.bolt_share)[i]) / b.spacing
                 if kd["field"] == "stiffness":
-                    mf["bolt_k"] = mf["bolt_k"].at[i].set(x / b.spacing)
+                    mf["bolt_k"] = mf["bolt_k"].at[i].set(w * x)
+                elif kd["field"] == "compression":
+                    mf["bolt_comp"] = mf["bolt_comp"].at[i].set(w * x)
                 else:
                     other = b.anchor_capacity if kd["field"] == "yield_force" else b.yield_force
-                    mf["bolt_cap"] = mf["bolt_cap"].at[i].set(jnp.minimum(x, other) / b.spacing)
+                    mf["bolt_cap"] = mf["bolt_cap"].at[i].set(w * jnp.minimum(x, other))
             elif kind == "support":
                 i = kd["index"]
                 arr[f"support{i}"] = x * jnp.asarray(layout.supports[i]["unit"])

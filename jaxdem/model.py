@@ -62,7 +62,10 @@ class Layout:
       supports: per support, its ``stage``, ``excavation`` and ``force`` (N, D)
         at full pressure on the faces of the excavation outline; also the
         tractions of boundaries that name a stage (``excavation`` None).
-      bolt_stages, bolt_spacing: per bolt, its stage and out-of-plane spacing (m).
+      bolt_stages, bolt_spacing: per solver bolt, its stage and out-of-plane spacing (m).
+      bolt_of, bolt_share: per solver bolt, the scene bolt it is part of and its share
+        of that bolt (1, or less where an anchor lies on a face shared by several
+        blocks: see :func:`_bolts`).
       materials: per rock block, its material name.
     """
 
@@ -81,6 +84,8 @@ class Layout:
     bolt_stages: list
     bolt_spacing: np.ndarray
     materials: list
+    bolt_of: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.int32))
+    bolt_share: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
 
 
 def _wall_polygon(p0, p1, inside_point, thickness):
@@ -313,6 +318,7 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
         bolt_blocks=jnp.asarray(bolts["blocks"]),
         bolt_offsets=jnp.asarray(bolts["offsets"], dtype),
         bolt_k=jnp.asarray(bolts["k"], dtype), bolt_cap=jnp.asarray(bolts["cap"], dtype),
+        bolt_comp=jnp.asarray(bolts["comp"], dtype),
         bolt_pullout=jnp.asarray(bolts["pullout"]),
         cell_D=jnp.asarray(cell_D, dtype), bond_penalty=jnp.asarray(BOND_PENALTY, dtype),
         verts0=jnp.asarray(verts, dtype), centroid0=jnp.asarray(all_cents, dtype),
@@ -325,6 +331,7 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
         u=jnp.zeros((N, 2), dtype), rot=jnp.zeros(N, dtype), alive=jnp.ones(N, bool),
         bolt_force=jnp.zeros(len(bolts["k"]), dtype),
         bolt_state=jnp.zeros(len(bolts["k"]), jnp.int32),
+        bolt_rest=jnp.zeros(len(bolts["k"]), dtype),
         strain=jnp.zeros((N, 3), dtype), stress=jnp.zeros((N, 3), dtype),
         capacity=capacity, **empty_history(N, capacity, V, dtype),
     )
@@ -352,6 +359,7 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
         length=L, dtype=dtype, load_steps=s.load_steps,
         weight=weight, traction=traction, excavation=excavation, supports=supports,
         bolt_stages=bolts["stages"], bolt_spacing=bolts["spacing"],
+        bolt_of=bolts["bolt"], bolt_share=bolts["share"],
         materials=[pc.material for pc in pieces],
     )
     return model, state, layout
@@ -386,27 +394,43 @@ def _face_loads(polys, cents, n_blocks, segments, traction_of, tol, ndof=3):
 
 
 def _bolts(scene, polys, cents, pieces, tol) -> dict:
-    """Bolt anchors: the rock block (not excavated) holding each end, and per-metre properties."""
+    """Bolt anchors: the rock blocks (not excavated) holding each end, and per-metre properties.
+
+    The solver's bolts are springs between two blocks. An end on a face shared by
+    several blocks (a bolt along a joint or an intact cut, as a crown bolt on the
+    axis of a symmetric model often is) is held by all of them equally: the bolt is
+    split into parallel sub-bolts, one per pair of holders, each with its share w
+    of the stiffness and capacities. Taking one holder (the first in the block
+    list) made the answer depend on how the blocks are numbered (a mirrored scene
+    gave a bolt force 0.7% apart). ``bolt`` maps each sub-bolt to its scene bolt and
+    ``share`` gives w.
+    """
     rows = []
-    for b in scene.bolts:
-        ends = []
+    for i, b in enumerate(scene.bolts):
+        holders = []
         for p in (np.asarray(b.start, float), np.asarray(b.end, float)):
-            k = next(i for i, poly in enumerate(polys)
-                     if pieces[i].excavation is None and geometry.point_in_polygon(p, poly, tol))
-            ends.append((k, p - cents[k]))
-        rows.append(dict(blocks=[ends[0][0], ends[1][0]], offsets=[ends[0][1], ends[1][1]],
-                         k=b.stiffness / b.spacing,
-                         cap=min(b.yield_force, b.anchor_capacity) / b.spacing,
-                         pullout=b.anchor_capacity < b.yield_force, stage=b.stage,
-                         spacing=b.spacing))
+            inside = [k for k, poly in enumerate(polys)
+                      if pieces[k].excavation is None and geometry.point_in_polygon(p, poly, tol)]
+            holders.append([(k, p - cents[k]) for k in inside])
+        for k1, r1 in holders[0]:
+            for k2, r2 in holders[1]:
+                w = 1.0 / (len(holders[0]) * len(holders[1]))
+                rows.append(dict(blocks=[k1, k2], offsets=[r1, r2], k=w * b.stiffness / b.spacing,
+                                 cap=w * min(b.yield_force, b.anchor_capacity) / b.spacing,
+                                 comp=w * b.compression / b.spacing,
+                                 pullout=b.anchor_capacity < b.yield_force, stage=b.stage,
+                                 spacing=b.spacing, bolt=i, share=w))
     return dict(
         blocks=np.array([r["blocks"] for r in rows], np.int32).reshape(-1, 2),
         offsets=np.array([r["offsets"] for r in rows], float).reshape(-1, 2, 2),
         k=np.array([r["k"] for r in rows], float),
         cap=np.array([r["cap"] for r in rows], float),
+        comp=np.array([r["comp"] for r in rows], float),
         pullout=np.array([r["pullout"] for r in rows], bool),
         stages=[r["stage"] for r in rows],
         spacing=np.array([r["spacing"] for r in rows], float),
+        bolt=np.array([r["bolt"] for r in rows], np.int32),
+        share=np.array([r["share"] for r in rows], float),
     )
 
 
@@ -527,21 +551,35 @@ def _cell_capacity(verts, radius, big, margin) -> int:
 
 
 def _locate_monitors(scene, polys, cents, tol, excavation) -> dict:
-    """The rock block holding each monitored point, and the point's offset from its centroid.
+    """The rock blocks holding each monitored point, and the point's offsets from their centroids.
 
-    A point on a face shared by several blocks goes to the first one that is
-    not excavated.
+    A point on a face shared by several blocks (a joint or an intact cut) follows the
+    mean of their material points there, with equal weights: taking one of them (the
+    first in the block list) made a reading depend on how the blocks are numbered,
+    and a mirrored scene read another block. Excavated blocks hold a point only when
+    no rock block does. ``blocks`` and ``weights`` are (points, H) and ``offsets``
+    (points, H, 2), H the largest number of holders of a point in the scene (unused
+    entries have weight 0).
     """
-    out = {}
+    found = []
     for m in scene.monitors:
         pts = [m.point] if m.kind == "point" else [m.start, m.end]
-        blocks, offsets = [], []
+        rows = []
         for p in pts:
             p = np.asarray(p, float)
             inside = [i for i, poly in enumerate(polys) if geometry.point_in_polygon(p, poly, tol)]
-            k = next((i for i in inside if excavation[i] is None), inside[0])
-            blocks.append(k)
-            offsets.append(p - cents[k])
-        out[m.name] = dict(kind=m.kind, blocks=blocks, offsets=np.array(offsets),
-                           points=np.array([np.asarray(p, float) for p in pts]))
+            rock = [i for i in inside if excavation[i] is None]
+            rows.append((p, rock or inside[:1]))
+        found.append((m, rows))
+    H = max([len(h) for _, rows in found for _, h in rows], default=1)
+    out = {}
+    for m, rows in found:
+        blocks = np.zeros((len(rows), H), np.int32)
+        offsets = np.zeros((len(rows), H, 2))
+        weights = np.zeros((len(rows), H))
+        for j, (p, holders) in enumerate(rows):
+            for h, k in enumerate(holders):
+                blocks[j, h], offsets[j, h], weights[j, h] = k, p - cents[k], 1.0 / len(holders)
+        out[m.name] = dict(kind=m.kind, blocks=blocks, offsets=offsets, weights=weights,
+                           points=np.array([p for p, _ in rows]))
     return out

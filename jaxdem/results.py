@@ -48,7 +48,9 @@ class Result:
       stages: per stage ``name``, ``converged``, ``stable``, ``iterations`` (Newton
         iterations per increment), ``substeps`` (geometry updates per increment),
         ``residual`` (final relative residual per increment), ``imbalance``
-        (relative global force imbalance per increment), ``monitors``
+        (relative global force imbalance per increment), ``max_slip`` and
+        ``max_opening`` (m, the largest joint slip and opening in each
+        increment), ``monitors``
         (monitor name -> value after each increment).
       moving_blocks: ids of the blocks that kept moving when a mechanism was found.
       equilibrium: global balance of the final state: ``applied`` [Fx, Fy, M]
@@ -56,6 +58,16 @@ class Result:
         free blocks) and ``imbalance``: |applied + reaction| over the larger of the
         summed load and reaction magnitudes.
       timing: ``build_s``, ``compile_s``, ``solve_s`` (s).
+      admissibility: of the last increment: ``overlap`` (m, the deepest
+        interpenetration at a contact), ``overlap_rel`` (that over the smaller
+        block's size), ``strength_excess`` (largest excess of a contact's forces
+        over its strength, relative to its blocks' force scale), ``imbalance``
+        (global), each with its tolerance (``tolerances``), and ``admissible``.
+        ``converged`` requires all three within their tolerances; otherwise
+        ``status`` names the one that failed (``overlap``, ``law_violation``,
+        ``imbalance``).
+      warnings: sentences for the engineer to review, e.g. a joint slip in one
+        increment larger than ``LARGE_SLIP`` (5%) of the block's size.
       geometry: plotting data, not written to JSON: ``initial_vertices`` and
         ``final_vertices`` (lists of (n_i, 2) arrays, m), ``fixed`` (bool per
         block), ``walls`` (list of (2, 2) segments), ``contacts`` with ``points``
@@ -84,6 +96,8 @@ class Result:
     timing: dict[str, float]
     geometry: dict[str, Any] = dataclasses.field(default_factory=dict, repr=False)
     history: list[dict[str, Any]] = dataclasses.field(default_factory=list, repr=False)
+    admissibility: dict[str, Any] = dataclasses.field(default_factory=dict)
+    warnings: list[str] = dataclasses.field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         """The content of ``result.json``: plain JSON types only."""
@@ -101,6 +115,8 @@ class Result:
             "moving_blocks": self.moving_blocks,
             "equilibrium": self.equilibrium,
             "timing": self.timing,
+            "admissibility": self.admissibility,
+            "warnings": self.warnings,
         }
         return jsonable(out)
 
@@ -145,21 +161,23 @@ def jsonable(x: Any, finite: bool = False) -> Any:
 
 
 @jax.jit
-def _material_points(centroid, rot, strain, blocks, offsets):
-    """c + (I + E) R(rot) offset of material points given by (block, offset from its centroid)."""
+def _material_points(centroid, rot, strain, blocks, offsets, weights):
+    """Weighted mean over holders of c + (I + E) R(rot) offset: (n, H) blocks -> (n, 2) points."""
     from jaxdem.solver import _rotate, strain_times
 
     r = _rotate(offsets, rot[blocks])
-    return centroid[blocks] + r + strain_times(strain[blocks], r)
+    p = centroid[blocks] + r + strain_times(strain[blocks], r)
+    return jnp.sum(weights[..., None] * p, axis=-2)
 
 
 def monitor_positions(m, centroid, rot, strain):
-    """Current positions of a monitor's material points, c + (I + E) R(rot) offset.
+    """Current positions of a monitor's material points, c + (I + E) R(rot) offset
+    (the mean over the blocks that hold a point on their common face).
 
     jax.numpy, so that :mod:`jaxdem.differentiable` differentiates the same readings.
     """
     return _material_points(centroid, rot, strain, jnp.asarray(m["blocks"]),
-                            jnp.asarray(m["offsets"]))
+                            jnp.asarray(m["offsets"]), jnp.asarray(m["weights"], centroid.dtype))
 
 
 def _all_positions(layout, state) -> list[np.ndarray]:
@@ -170,18 +188,20 @@ def _all_positions(layout, state) -> list[np.ndarray]:
     more than its increments (about 20 ms a solve on the benchmark tunnel).
     """
     ms = list(layout.monitors.values())
-    blocks = np.concatenate([np.asarray(m["blocks"], np.int32).reshape(-1) for m in ms])
-    offsets = np.concatenate([np.asarray(m["offsets"], float).reshape(-1, 2) for m in ms])
+    blocks = np.concatenate([np.asarray(m["blocks"], np.int32) for m in ms])
+    offsets = np.concatenate([np.asarray(m["offsets"], float) for m in ms])
+    weights = np.concatenate([np.asarray(m["weights"], float) for m in ms])
     pts = np.asarray(_material_points(state.centroid, state.rot, state.strain,
-                                      jnp.asarray(blocks), jnp.asarray(offsets)))
-    return np.split(pts, np.cumsum([np.size(m["blocks"]) for m in ms])[:-1])
+                                      jnp.asarray(blocks), jnp.asarray(offsets),
+                                      jnp.asarray(weights, state.centroid.dtype)))
+    return np.split(pts, np.cumsum([len(m["points"]) for m in ms])[:-1])
 
 
 def monitor_values(layout, state, ref=None) -> dict[str, dict[str, Any]]:
     """Monitor readings of a state: point displacement or section convergence (m).
 
     A point monitor follows the material point of the rock block that held it
-    at the start. A section's convergence is the shortening of the distance
+    at the start (the mean of those of the blocks whose common face it lies on). A section's convergence is the shortening of the distance
     between its two material points (positive when they approach); ``along``
     is each end's displacement projected on the section direction from -> to.
     Displacements are measured from ``ref`` (a state), else from the start.
@@ -234,14 +254,46 @@ def block_stress(n_blocks, area, centroid, snap) -> np.ndarray:
     return np.stack([sig[:n_blocks, 0, 0], sig[:n_blocks, 1, 1], sig[:n_blocks, 0, 1]], axis=1)
 
 
-_BOLT_STATES = {0: "elastic", 1: "yielded", 2: "pulled out"}
+_BOLT_STATES = {0: "elastic", 1: "yielded", 2: "pulled out", 3: "slack",
+                4: "yielded in compression"}
 
 
-def bolt_anchors(model, state) -> list[np.ndarray]:
+# A scene bolt split into sub-bolts (an anchor on a shared face) reports the state of
+# its most advanced part, in this order.
+_BOLT_STATE_RANK = (0, 3, 4, 1, 2)
+
+
+def _by_scene_bolt(layout, n: int) -> list[np.ndarray]:
+    """The solver bolts (sub-bolts) of each of the scene's n bolts."""
+    of = np.asarray(layout.bolt_of)
+    if of.size == 0 and n:
+        of = np.arange(n)
+    return [np.nonzero(of == i)[0] for i in range(int(of.max(initial=-1)) + 1)]
+
+
+def scene_bolts(scene, layout, state) -> list[dict[str, Any]]:
+    """result.json's ``bolts``: per scene bolt, its force (kN, per bolt; ``force_per_m``
+    per metre of tunnel: divided by the spacing), its state, and its compression
+    capacity (kN; 0: it carries tension only, like a cable)."""
+    force = np.asarray(state.bolt_force)
+    st = np.asarray(state.bolt_state)
+    out = []
+    for i, subs in enumerate(_by_scene_bolt(layout, len(force))):
+        per_m = float(np.sum(force[subs]))
+        worst = max((int(x) for x in st[subs]), key=_BOLT_STATE_RANK.index, default=0)
+        spacing = float(layout.bolt_spacing[subs[0]])
+        comp = scene.bolts[i].compression if i < len(scene.bolts) else 0.0
+        out.append({"id": i, "force": per_m * spacing, "force_per_m": per_m,
+                    "state": _BOLT_STATES[worst], "compression_capacity": comp})
+    return out
+
+
+def bolt_anchors(model, state, layout=None) -> list[np.ndarray]:
     """Current anchor positions of each bolt: a list of (2, 2) arrays (m), for plotting.
 
-    The same anchors the solver uses (:func:`jaxdem.solver.bolt_geometry`);
-    empty when the model has no bolts.
+    The same anchors the solver uses (:func:`jaxdem.solver.bolt_geometry`), one
+    per scene bolt (the mean of its sub-bolts' when an anchor lies on a shared
+    face); empty when the model has no bolts.
     """
     if not model.n_bolts:
         return []
@@ -249,7 +301,11 @@ def bolt_anchors(model, state) -> list[np.ndarray]:
 
     g = bolt_geometry(model, state)
     ends = np.stack([np.asarray(g["point_b"]), np.asarray(g["point_a"])], axis=1)
-    return list(ends)
+    if layout is None:
+        return list(ends)
+    share = np.asarray(layout.bolt_share)
+    return [np.sum(share[s, None, None] * ends[s], axis=0) / np.sum(share[s])
+            for s in _by_scene_bolt(layout, len(ends))]
 
 
 def build_result(scene, model, layout, state, ref, info, records, history, timing) -> Result:
@@ -323,13 +379,34 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
             "substeps": [r["substeps"] for r in recs],
             "residual": [r["residual"] for r in recs],
             "imbalance": [r["imbalance"] for r in recs],
+            "max_slip": [r.get("slip", 0.0) for r in recs],
+            "max_opening": [r.get("opening", 0.0) for r in recs],
             "monitors": {m: [_scalar(h["monitors"][m]) for h in hist] for m in monitors},
         })
-    bolt_force = np.asarray(state.bolt_force)
-    bolt_state = np.asarray(state.bolt_state)
-    bolts = [{"id": b, "force": float(bolt_force[b] * layout.bolt_spacing[b]),
-              "force_per_m": float(bolt_force[b]), "state": _BOLT_STATES[int(bolt_state[b])]}
-             for b in range(len(bolt_force))]
+    bolts = scene_bolts(scene, layout, state)
+    from jaxdem.solver import IMBALANCE_FACTOR, LARGE_SLIP, OVERLAP_TOL, STRENGTH_TOL
+
+    imbalance_tol = IMBALANCE_FACTOR * float(model.tol)
+
+    admissibility = {
+        "overlap": last.get("overlap", 0.0), "overlap_rel": last.get("overlap_rel", 0.0),
+        "strength_excess": last.get("strength_excess", 0.0), "imbalance": last["imbalance"],
+        "tolerances": {"overlap_rel": OVERLAP_TOL, "strength_excess": STRENGTH_TOL,
+                       "imbalance": imbalance_tol},
+    }
+    admissibility["admissible"] = bool(
+        admissibility["overlap_rel"] <= OVERLAP_TOL
+        and admissibility["strength_excess"] <= STRENGTH_TOL
+        and admissibility["imbalance"] <= imbalance_tol)
+    warnings = []
+    big = [r for r in records if r.get("slip_rel", 0.0) > LARGE_SLIP]
+    if big:
+        r = max(big, key=lambda r: r["slip"])
+        pair = " and ".join(_block_name(i, nr) for i in r["slip_blocks"])
+        warnings.append(
+            f"{'stable' if stable else 'unstable'}, but joint slip of {1e3 * r['slip']:.0f} mm "
+            f"in one increment (load step {r['step']} of stage {r['stage']}) at blocks {pair}: "
+            f"more than {LARGE_SLIP:.0%} of the block's size; review")
     verts = np.asarray(state.verts)
     nv = np.asarray(model.nv)
     geometry = {
@@ -343,7 +420,7 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
         "monitors": {name: m["points"] for name, m in layout.monitors.items()},
         "stress": stress,
         "centroids": cen[:nr],
-        "bolts": bolt_anchors(model, state),
+        "bolts": bolt_anchors(model, state, layout),
     }
     hist = [{"stage": h["stage"], "step": h["step"], "load_factor": h["load_factor"],
              "monitors": {k: _scalar(v) for k, v in h["monitors"].items()}} for h in history]
@@ -351,5 +428,10 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
         scene=scene.name, converged=converged, stable=stable, status=status.label,
         message=message, monitors=monitors, blocks=blocks, contacts=contacts, bolts=bolts,
         stages=stages, moving_blocks=moving, equilibrium=equilibrium, timing=timing,
-        geometry=geometry, history=hist,
+        geometry=geometry, history=hist, admissibility=admissibility, warnings=warnings,
     )
+
+
+def _block_name(i: int, n_rock: int) -> str:
+    """A block id as the user knows it: rock blocks by id, the rest are boundaries."""
+    return str(i) if i < n_rock else "boundary"

@@ -312,8 +312,9 @@ class InSitu:
 @dataclass(frozen=True, eq=False)
 class Bolt:
     """A rock bolt from ``start`` to ``end`` (m, shape (2,)): axial ``stiffness`` (kN/m),
-    ``yield_force`` and ``anchor_capacity`` (kN), ``spacing`` out of plane (m; forces per
-    metre are divided by it); installed in ``stage`` (None: the first)."""
+    ``yield_force`` and ``anchor_capacity`` (kN) in tension, ``compression`` (kN) the force
+    it carries in compression (0: none, a cable that goes slack), ``spacing`` out of plane
+    (m; forces per metre are divided by it); installed in ``stage`` (None: the first)."""
 
     start: np.ndarray
     end: np.ndarray
@@ -322,6 +323,7 @@ class Bolt:
     anchor_capacity: float
     spacing: float = 1.0
     stage: str | None = None
+    compression: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -456,7 +458,8 @@ SHAPE_FIELDS = {
 }
 IN_SITU_FIELDS = ("mode", "k0", "surface_y", "sigma_xx", "sigma_yy", "sigma_xy")
 MODES = ("gravity", "uniform")
-BOLT_FIELDS = ("from", "to", "stiffness", "yield_force", "anchor_capacity", "spacing", "stage")
+BOLT_FIELDS = ("from", "to", "stiffness", "yield_force", "anchor_capacity", "spacing", "stage",
+               "compression")
 SUPPORT_FIELDS = ("excavation", "pressure", "stage")
 WATER_FIELDS = ("table", "unit_weight")
 STAGE_FIELDS = ("name", "load_steps", "water_table")
@@ -476,7 +479,7 @@ _OPTIONAL_NUMERIC = {
     "domain": ("mesh_size", "mesh_max_size"),
     "in_situ": IN_SITU_FIELDS[1:],
     "water": ("unit_weight",),
-    "bolts": ("spacing",),
+    "bolts": ("spacing", "compression"),
     "stages": ("load_steps",),
 }
 # Sections whose optional fields sit at depth 2 (section.field) or 3 (section.NAME|i.field).
@@ -1507,6 +1510,7 @@ def _parse_bolts(data: dict, rock: _Rock, stages: tuple[Stage, ...]) -> tuple[Bo
                 anchor_capacity=_field(t, "anchor_capacity", p, required=True, lo=0, lo_open=True),
                 spacing=_field(t, "spacing", p, default=1.0, lo=0, lo_open=True),
                 stage=_stage_ref(t, p, stages),
+                compression=_field(t, "compression", p, default=0.0, lo=0),
             )
         )
     return tuple(out)

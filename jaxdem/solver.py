@@ -59,6 +59,26 @@ from jaxdem.laws import forces_in_state, mohr_coulomb, slot_properties
 from jaxdem.state import OPEN, SLIP, STICK, Loads, Model, State, grow_capacity
 
 
+# Admissibility of a converged increment (result.json "admissibility"): what
+# "converged" requires besides each block's residual below the tolerance.
+OVERLAP_TOL = 0.1
+"""Largest overlap of two blocks at a contact, relative to the smaller one's size
+(its largest centroid-to-vertex distance). A joint spring's compression is its
+force over kn, a joint's closure: a few mm under some MPa, which on the small
+blocks of a generated rock mass (0.1-0.2 m) is a few percent of their size (the
+bundled demo reaches 2.2%). Ten percent is far beyond any closure and well below
+a block sunk into its neighbour (the jammed key block of issue 16 was 16%)."""
+STRENGTH_TOL = 1e-3
+"""Largest excess of a contact's forces over its strength (shear beyond
+c share + fn tan(phi), tension beyond the cut-off), relative to the force scale
+of its blocks (the scale of the equilibrium test)."""
+IMBALANCE_FACTOR = 100.0
+"""Largest global imbalance |applied + reactions| of the free blocks, relative to
+the forces in play (:func:`_imbalance`), in units of ``solver.tolerance`` (each
+block balances to the tolerance; their sum to about ten times it, tests/test_properties.py):
+1e-4 at the default tolerance."""
+
+
 class Status(enum.IntEnum):
     """Outcome of an increment, with the message shown to the user."""
 
@@ -67,6 +87,9 @@ class Status(enum.IntEnum):
     ITERATION_LIMIT = 2
     CAPACITY_OVERFLOW = 3
     NON_FINITE = 4
+    OVERLAP = 5
+    LAW_VIOLATION = 6
+    IMBALANCE = 7
 
     @property
     def message(self) -> str:
@@ -78,6 +101,12 @@ class Status(enum.IntEnum):
             "Try increasing solver.max_iterations or solver.load_steps.",
             Status.CAPACITY_OVERFLOW: "The contact list overflowed its capacity.",
             Status.NON_FINITE: "The solution became non-finite (NaN or infinity).",
+            Status.OVERLAP: "Balance was found, but with blocks overlapping by more than "
+            f"{OVERLAP_TOL:.0%} of the adjacent block's size: not an admissible state.",
+            Status.LAW_VIOLATION: "Balance was found, but a contact carries more than its "
+            "strength allows (Mohr-Coulomb or tension cut-off): not an admissible state.",
+            Status.IMBALANCE: "The blocks do not balance the loads as a whole (global "
+            f"imbalance over {IMBALANCE_FACTOR:g} x solver.tolerance): not an admissible state.",
         }[self]
 
     @property
@@ -187,15 +216,72 @@ class _Sub:
     Kc: jax.Array | None
 
 
-def _bolt_law(model: Model, sub: _Sub, du):
-    """Bolt axial forces, tension positive: elastic to min(yield, anchor capacity), then plastic."""
+def _bolt_length(ndof, d0, ra, rb, x):
+    """Current anchor-to-anchor length of one bolt after the move x = (du_a, du_b) (m).
+
+    ``d0`` = anchor a - anchor b at the sub-step's geometry, ``ra``, ``rb`` the anchors
+    from their blocks' centroids. Exact rigid motion (rotation by du[2], and for a
+    deformable block its strain first), as :func:`_move` applies it: the bolt's force
+    comes from its actual elongation at any displacement, not from a sum of
+    linearised increments.
+    """
+    def moved(u, r):
+        if ndof == 6:
+            r_new = r + strain_times(u[3:], r)
+        else:
+            r_new = r
+        return u[:2] + _rotate(r_new, u[2]) - r
+
+    d = d0 + moved(x[:ndof], ra) - moved(x[ndof:], rb)
+    # The anchors are distinct (the scene refuses a bolt of zero length); the floor
+    # only keeps sqrt's derivative finite.
+    return jnp.sqrt(jnp.maximum(jnp.sum(d * d), jnp.finfo(d.dtype).tiny))
+
+
+def _bolt_kinematics(model: Model, sub: _Sub, du):
+    """Length L (B,), its gradient g (B, 2 D) and Hessian H (B, 2 D, 2 D) in (du_a, du_b).
+
+    g is the bolt's row (the elongation of a small move, which turns with the
+    anchor-to-anchor line) and H its change: F H is the bolt's geometric
+    stiffness, the string stiffness F / L across its line and the lever-arm
+    terms of its anchors' rotations. Parts of blocks without degrees of freedom
+    are zero.
+    """
     bolt = sub.bolt
-    elong = jnp.sum(bolt["B"] * _gather(du, bolt["a"], bolt["b"]), axis=1)
-    trial = bolt["f_old"] + model.bolt_k * elong
-    over = jnp.abs(trial) > model.bolt_cap
-    force = jnp.where(bolt["active"], jnp.clip(trial, -model.bolt_cap, model.bolt_cap), 0.0)
-    state = jnp.where(bolt["active"] & over, jnp.where(model.bolt_pullout, 2, 1), 0)
+    D = model.ndof
+    mask = jnp.concatenate([jnp.repeat(bolt["free_a"][:, None], D, 1),
+                            jnp.repeat(bolt["free_b"][:, None], D, 1)], 1).astype(du.dtype)
+    x = _gather(du, bolt["a"], bolt["b"]) * mask
+    length = functools.partial(_bolt_length, D)
+    L, g = jax.vmap(jax.value_and_grad(length, argnums=3))(bolt["d0"], bolt["ra"], bolt["rb"], x)
+    H = jax.vmap(jax.hessian(length, argnums=3))(bolt["d0"], bolt["ra"], bolt["rb"], x)
+    return L, g * mask, H * mask[:, :, None] * mask[:, None, :]
+
+
+def _bolt_law(model: Model, sub: _Sub, L):
+    """Bolt axial forces (kN/m, tension positive) and states from the current length L (m).
+
+    Elastic, k (L - rest), between the compression it may carry (``bolt_comp``; 0: it
+    goes slack, state 3) and its tension capacity min(yield, anchor capacity),
+    where it is plastic (state 1 yielded, 2 pulled out; 4 yielded in compression):
+    the plastic elongation is kept at commit (:func:`_commit`), so that unloading
+    is elastic from the yielded length.
+    """
+    bolt = sub.bolt
+    trial = model.bolt_k * (L - bolt["rest"])
+    cap, comp = model.bolt_cap, model.bolt_comp
+    force = jnp.where(bolt["active"], jnp.clip(trial, -comp, cap), 0.0)
+    state = jnp.select([trial > cap, (trial < 0) & (comp <= 0), trial < -comp],
+                       [jnp.where(model.bolt_pullout, 2, 1), 3, 4], 0)
+    state = jnp.where(bolt["active"], state, 0)
     return force, state.astype(jnp.int32)
+
+
+def _bolt_rest(model: Model, sub: _Sub, L, force, state):
+    """The rest length after the step: plastic elongation or shortening kept."""
+    k = model.bolt_k
+    plastic = (state == 1) | (state == 2) | (state == 4)
+    return jnp.where(sub.bolt["active"] & plastic, L - force / k, sub.bolt["rest"])
 
 
 def _evaluate(model: Model, sub: _Sub, du, frozen, frozen_state, prev, band):
@@ -239,11 +325,13 @@ def _evaluate(model: Model, sub: _Sub, du, frozen, frozen_state, prev, band):
     out = dict(fn=fn, fs=fs, state=st, gap=gap, fn_trial=fn_trial, fs_trial=fs_trial,
                total_n=total_n, misfit=jnp.abs(d_n) + jnp.abs(d_s), law_state=st_l)
     if model.n_bolts:
-        bf, bst = _bolt_law(model, sub, du)
+        L, g, H = _bolt_kinematics(model, sub, du)
+        bf, bst = _bolt_law(model, sub, L)
         bolt = sub.bolt
-        internal = internal + _scatter(model.n_blocks, bolt["a"], bolt["b"],
-                                       -bolt["B"] * bf[:, None])
-        out.update(bolt_force=bf, bolt_state=bst)
+        bolt_rows = -g * bf[:, None]
+        internal = internal + _scatter(model.n_blocks, bolt["a"], bolt["b"], bolt_rows)
+        out.update(bolt_force=bf, bolt_state=bst, bolt_length=L, bolt_g=g, bolt_H=H,
+                   bolt_rows=bolt_rows)
     if model.ndof == 6:
         # Deformable blocks: the stress (committed + D d_eps) resists the strains.
         dsig = jnp.einsum("nij,nj->ni", model.cell_D, du[:, 3:])
@@ -298,6 +386,29 @@ def _block_scale(model: Model, sub: _Sub, ev=None):
     return s
 
 
+def _roundoff_floor(model: Model, sub: _Sub):
+    """(N,) smallest residual (kN/m) each block can be balanced to in this dtype.
+
+    A spring's force is k x gap and a gap is resolved to eps x |coordinates| at
+    best, so a block's residual cannot fall below about eps |x| sum k over its
+    springs (and bolts). Asking for less stalls Newton on round-off, which
+    then reads as a mechanism that does not exist (a key block at rest, pushed
+    by a gap of -2e-16 m, was moved 59 mm).
+    """
+    N = model.n_blocks
+    eps = jnp.finfo(sub.load.dtype).eps
+    geo = sub.geo
+    reach = jnp.max(jnp.abs(geo["point"]), axis=1) + model.radius[geo["a"]]
+    k = jnp.where(geo["active"], sub.prop["kn"] + sub.prop["ks"], 0.0) * reach
+    r = jax.ops.segment_sum(k, geo["a"], N) + jax.ops.segment_sum(k, geo["b"], N)
+    if model.n_bolts:
+        bolt = sub.bolt
+        kb = jnp.where(bolt["active"], model.bolt_k, 0.0) * (
+            jnp.linalg.norm(bolt["d0"], axis=1) + model.radius[bolt["a"]])
+        r = r + jax.ops.segment_sum(kb, bolt["a"], N) + jax.ops.segment_sum(kb, bolt["b"], N)
+    return 4.0 * eps * r
+
+
 def _stiffness_terms(model: Model, sub: _Sub, ev, consistent):
     """The iteration matrix K_t = sum_m k_m B_m B_m^T as rank-one terms (a, b, B, k).
 
@@ -319,10 +430,41 @@ def _stiffness_terms(model: Model, sub: _Sub, ev, consistent):
     a, b = sub.geo["a"], sub.geo["b"]
     terms = [(a, b, sub.Bn, kn), (a, b, sub.Bs, ks)]
     if model.n_bolts:
-        bolt = sub.bolt
-        kb = jnp.where(bolt["active"] & ((ev["bolt_state"] == 0) | ~consistent), model.bolt_k, 0.0)
-        terms.append((bolt["a"], bolt["b"], bolt["B"], kb))
+        terms.append(_bolt_terms(model, sub, ev, consistent))
     return [jnp.concatenate(x) for x in zip(*terms, strict=True)]
+
+
+def _bolt_terms(model: Model, sub: _Sub, ev, consistent):
+    """The bolts' tangent as rank-one terms (a, b, v, lambda): 2 D a bolt.
+
+    K_b = k g g^T + F H (:func:`_bolt_kinematics`): the axial spring (none for a
+    plastic or slack bolt in the consistent tangent; the elastic one in the
+    secant) and the geometric stiffness of its force, which holds a block hung
+    on a bolt sideways (F / L) and in rotation. Symmetric: written as its
+    eigen-pairs, so that every linear solver takes it as it takes the springs.
+    Its negative part (a block hung below its centroid is unstable in rotation)
+    is kept for the direct solvers and left out of the conjugate-gradient
+    iteration, which needs a positive definite matrix (Newton then converges
+    linearly there).
+    """
+    bolt = sub.bolt
+    D = model.ndof
+    g, H, F = ev["bolt_g"], ev["bolt_H"], ev["bolt_force"]
+    axial = jnp.where(bolt["active"] & ((ev["bolt_state"] == 0) | ~consistent), model.bolt_k, 0.0)
+    K = axial[:, None, None] * g[:, :, None] * g[:, None, :] + F[:, None, None] * H
+    K = jnp.where(bolt["active"][:, None, None], 0.5 * (K + jnp.swapaxes(K, 1, 2)), 0.0)
+    lam, vec = jnp.linalg.eigh(K)
+    if model.linear_solver == "cg":
+        lam = jnp.maximum(lam, 0.0)
+    nb = g.shape[0]
+    rep = lambda x: jnp.repeat(x, 2 * D)  # noqa: E731
+    return (rep(bolt["a"]), rep(bolt["b"]), jnp.swapaxes(vec, 1, 2).reshape(nb * 2 * D, 2 * D),
+            lam.reshape(-1))
+
+
+def _n_bolt_terms(model: Model) -> int:
+    """Rank-one terms of the bolts at the end of a term list (:func:`_bolt_terms`)."""
+    return model.n_bolts * 2 * model.ndof
 
 
 def _with_slip_coupling(model: Model, sub: _Sub, ev, terms, on):
@@ -365,7 +507,7 @@ def _assemble_dense(model: Model, sub: _Sub, a, b, L, Rt, k, diag):
     S = sub.geo["a"].shape[0]
     V = model.n_vertices
     P = S // (2 * V)
-    T = (k.shape[0] - model.n_bolts) // S
+    T = (k.shape[0] - _n_bolt_terms(model)) // S
 
     def by_pair(x):
         # (T S, 2 D) rows -> (T, P, 2 V, 2 D), ordered (first block, second block) of
@@ -507,7 +649,7 @@ def _compact_terms(model: Model, terms):
     """
     a, b, B, k = terms
     m = k.shape[0]
-    n_bolt = model.n_bolts
+    n_bolt = _n_bolt_terms(model)
     cap = min(m, (m - n_bolt) * 2 // max(model.n_vertices * 2, 2) + n_bolt)
     if cap >= m:
         return terms
@@ -618,8 +760,10 @@ def _newton(model: Model, sub: _Sub, st0):
     s_slot = jnp.minimum(jnp.where(sub.free, s0, jnp.inf)[sub.geo["a"]],
                          jnp.where(sub.free, s0, jnp.inf)[sub.geo["b"]])
     band = 0.1 * model.tol * jnp.where(jnp.isfinite(s_slot), s_slot, biggest)
+    # Nor below what round-off in the positions leaves of it: each spring's force is
+    # k x gap, and a gap is resolved to eps x |coordinates| at best.
+    r_floor = _roundoff_floor(model, sub)
     zeros_s = jnp.zeros(S, jnp.int32)
-    allow = 0.02 * model.step_length
     # A small block moves at most a quarter of its radius per sub-step.
     step = jnp.minimum(model.step_length, 0.25 * model.radius)
 
@@ -629,7 +773,8 @@ def _newton(model: Model, sub: _Sub, st0):
     def body(c):
         ev = _evaluate(model, sub, c["du"], c["frozen"], c["frozen_state"], c["st"], band)
         changed = (ev["state"] != c["st"]) & sub.geo["active"]
-        tol = model.tol * jnp.maximum(s0, _block_scale(model, sub, ev))
+        scale_b = jnp.maximum(s0, _block_scale(model, sub, ev))
+        tol = jnp.maximum(model.tol * scale_b, r_floor)
         # Largest residual of a free block relative to its own tolerance.
         rnorm = jnp.max(jnp.where(sub.free, _block_residual(model, ev["R"]) / tol, 0.0))
         # Frozen slots only shape the path: the answer must balance every
@@ -715,14 +860,23 @@ def _newton(model: Model, sub: _Sub, st0):
         # smaller, stays negligible) and let the next sub-step follow it.
         creeping = c["stall"] >= 5
         s_travel = jnp.where(creeping & jnp.isfinite(fit), fit, jnp.minimum(fit, 1.0))
-        # An open slot may close during the step, but not sink deeper than a
-        # small allowance: a free block lands on its support, it does not
-        # plunge a whole step length into it.
+        # No step lands a block inside another. A slot may close during the step
+        # but not sink deeper than its spring's own compression under the forces
+        # in play (the larger force scale of its two blocks over its normal
+        # stiffness): a falling block lands on its support, it does not plunge a
+        # step length into it. Newton's own step (scale <= 1) compresses a
+        # closed spring as its law says, so closed slots bound only a step
+        # scaled beyond it (``creeping``); every step actually taken is checked.
+        s_slot = jnp.where(sub.free, scale_b, 0.0)
+        s_slot = jnp.maximum(s_slot[sub.geo["a"]], s_slot[sub.geo["b"]])
+        sink = s_slot / jnp.maximum(sub.prop["kn"], jnp.finfo(dtype).tiny)
         dn_step = jnp.sum(sub.Bn * _gather(ddu, sub.geo["a"], sub.geo["b"]), axis=1)
-        g_pred = ev["gap"] + dn_step
-        landing = sub.geo["active"] & (ev["state"] == OPEN) & (ev["gap"] > 0) & (g_pred < -allow)
-        drop = jnp.where(landing, ev["gap"] - g_pred, 1.0)
-        s_gap = jnp.min(jnp.where(landing, (ev["gap"] + allow) / drop, jnp.inf))
+        closing = sub.geo["active"] & (dn_step < 0)
+        depth = jnp.maximum(ev["gap"], 0.0) + sink
+        s_slots = jnp.where(closing, depth / jnp.where(closing, -dn_step, 1.0), jnp.inf)
+        is_open = ev["state"] == OPEN
+        s_slots = jnp.where(is_open, s_slots, jnp.maximum(s_slots, 1.0))
+        s_gap = jnp.min(s_slots, initial=jnp.inf)
         scale = jnp.minimum(s_travel, s_gap)
         clipped = (s_travel <= s_gap) & ((s_travel < 1.0) | creeping)
         overshoot = trying & clipped
@@ -850,9 +1004,15 @@ def _prepare(model: Model, state: State, loads: Loads):
     if model.n_bolts:
         bg = bolt_geometry(model, state)
         alive_b = state.alive[bg["a"]] & state.alive[bg["b"]] & loads.bolt_active
-        bolt = dict(a=bg["a"], b=bg["b"], f_old=state.bolt_force, active=alive_b,
-                    B=b_rows(free, bg["a"], bg["b"], bg["point_a"], bg["point_b"], bg["e"],
-                             state.centroid, D))
+        d0 = bg["point_a"] - bg["point_b"]
+        # A bolt is installed unstressed: its rest length is its length when it
+        # first acts (bolt_rest 0 until then), and grows with its plastic elongation.
+        length0 = jnp.linalg.norm(d0, axis=1)
+        rest = jnp.where(state.bolt_rest > 0, state.bolt_rest, length0)
+        bolt = dict(a=bg["a"], b=bg["b"], f_old=state.bolt_force, active=alive_b, d0=d0,
+                    ra=bg["point_a"] - state.centroid[bg["a"]],
+                    rb=bg["point_b"] - state.centroid[bg["b"]], rest=rest,
+                    free_a=free[bg["a"]], free_b=free[bg["b"]])
     sub = _Sub(geo=geo, prop=prop, Bn=Bn, Bs=Bs, fs_old=fs_old, fn0=fn0, failed=failed, pw=pw,
                bolt=bolt, load=jnp.where(free[:, None], loads.force, 0.0), free=free,
                stress=state.stress, Kc=_cell_stiffness(model, free) if D == 6 else None)
@@ -879,8 +1039,10 @@ def _commit(model: Model, state: State, sub: _Sub, pairs, du, ev):
         edge=geo["edge"].reshape(shape), cstate=st.reshape(shape),
         present=active.reshape(shape))
     if model.n_bolts:
-        new_state = dataclasses.replace(new_state, bolt_force=ev["bolt_force"],
-                                        bolt_state=ev["bolt_state"])
+        rest = _bolt_rest(model, sub, ev["bolt_length"], ev["bolt_force"], ev["bolt_state"])
+        new_state = dataclasses.replace(
+            new_state, bolt_force=ev["bolt_force"], bolt_state=ev["bolt_state"],
+            bolt_rest=jnp.where(sub.bolt["active"], rest, state.bolt_rest))
     # Global balance (about the origin) of the free blocks: applied loads and
     # the forces from blocks without degrees of freedom (bolts anchored in
     # them included).
@@ -893,7 +1055,7 @@ def _commit(model: Model, state: State, sub: _Sub, pairs, du, ev):
                                       b, N))
     if model.n_bolts:
         bolt = sub.bolt
-        rows = -bolt["B"] * ev["bolt_force"][:, None]
+        rows = ev["bolt_rows"]
         reaction = reaction + (
             jax.ops.segment_sum(jnp.where((~free[bolt["b"]])[:, None], rows[:, :3], 0.0),
                                 bolt["a"], N)
@@ -911,16 +1073,49 @@ def _commit(model: Model, state: State, sub: _Sub, pairs, du, ev):
                           jnp.abs(sub.fn0) + jnp.abs(sub.fs_old) + jnp.abs(sub.pw))
     carried = jnp.max(jnp.where(active, carried, 0.0), initial=0.0)
     carried = jnp.maximum(carried, 1e-3 * model.f_ref)
+    admissible = _admissibility(model, sub, ev)
     balance = dict(
+        **admissible,
         applied=jnp.stack([sub.load[:, 0].sum(), sub.load[:, 1].sum(), moment(sub.load).sum()]),
         reaction=jnp.stack([reaction[:, 0].sum(), reaction[:, 1].sum(), moment(reaction).sum()]),
         scale=jnp.maximum(jnp.maximum(jnp.sum(jnp.linalg.norm(reaction[:, :2], axis=1)),
                                       jnp.sum(jnp.linalg.norm(sub.load[:, :2], axis=1))),
                           carried),
     )
+    joint = active & ~sub.prop["bonded"] & ~model.joint_intact[geo["joint"]]
     snapshot = dict(point=geo["point"], normal=geo["normal"], a=a, b=b, active=active,
-                    fn=ev["fn"], fs=ev["fs"], pw=ev["total_n"] - ev["fn"], state=st)
+                    fn=ev["fn"], fs=ev["fs"], pw=ev["total_n"] - ev["fn"], state=st, joint=joint)
     return new_state, balance, snapshot
+
+
+def _admissibility(model: Model, sub: _Sub, ev) -> dict:
+    """How far the sub-step's answer is from admissible (see :data:`OVERLAP_TOL`).
+
+    ``overlap`` (m): the deepest interpenetration at a contact; ``overlap_rel``: the
+    same relative to the smaller block's size; ``excess``: the largest excess of a
+    contact's forces over its strength (Mohr-Coulomb, tension cut-off), relative
+    to the force scale of its blocks. The contact law itself never exceeds its
+    strength; a slot held frozen in its state may, by up to the tolerance.
+    """
+    geo, prop = sub.geo, sub.prop
+    a, b, active = geo["a"], geo["b"], geo["active"]
+    size = jnp.where(sub.free, model.radius, jnp.inf)
+    size = jnp.minimum(size[a], size[b])
+    size = jnp.where(jnp.isfinite(size), size, jnp.maximum(model.radius[a], model.radius[b]))
+    depth = jnp.where(active, jnp.maximum(-ev["gap"], 0.0), 0.0)
+    fn, fs = ev["fn"], ev["fs"]
+    bonded = prop["bonded"] & ~sub.failed
+    c = jnp.where(sub.failed, 0.0, prop["cohesion"])
+    t_cap = jnp.where(sub.failed, 0.0, prop["tension"])
+    limit = jnp.maximum(c + fn * prop["tanphi"], 0.0)
+    over = jnp.maximum(jnp.abs(fs) - limit, -fn - t_cap)
+    scale = jnp.where(sub.free, _block_scale(model, sub, ev), 0.0)
+    scale = jnp.maximum(jnp.maximum(scale[a], scale[b]), model.f_ref * 1e-3)
+    excess = jnp.where(active & ~bonded & (ev["state"] != OPEN), jnp.maximum(over, 0.0) / scale,
+                       0.0)
+    return dict(overlap=jnp.max(depth, initial=0.0),
+                overlap_rel=jnp.max(depth / size, initial=0.0),
+                excess=jnp.max(excess, initial=0.0))
 
 
 def _substep(model: Model, state: State, loads: Loads):
@@ -968,13 +1163,18 @@ def _increment(model: Model, state: State, loads: Loads, tangents=None, skip=Non
         small = jnp.max(_travel(model, du)) <= model.touch_tol
         stuck = jnp.where(newton["converged"] | newton["clipped"], 0, c["stuck"] + 1)
         substeps = c["substeps"] + 1
-        # The first outcome that holds ends the increment; -1 goes on.
+        # The first outcome that holds ends the increment; -1 goes on. An
+        # equilibrium counts only if it is admissible (no overlap, no law broken,
+        # the whole in balance): else the status says which check failed.
+        done = newton["converged"] & small & ~need["new_failures"]
         status = jnp.select(
-            [overflow, ~newton["finite"], newton["converged"] & small & ~need["new_failures"],
+            [overflow, ~newton["finite"], done & (balance["overlap_rel"] > OVERLAP_TOL),
+             done & (balance["excess"] > STRENGTH_TOL),
+             done & (_imbalance_jax(balance) > IMBALANCE_FACTOR * model.tol), done,
              jnp.max(travel) > model.max_displacement,
              (stuck >= 3) | (substeps >= model.max_substeps)],
-            [Status.CAPACITY_OVERFLOW, Status.NON_FINITE, Status.CONVERGED, Status.MECHANISM,
-             Status.ITERATION_LIMIT],
+            [Status.CAPACITY_OVERFLOW, Status.NON_FINITE, Status.OVERLAP, Status.LAW_VIOLATION,
+             Status.IMBALANCE, Status.CONVERGED, Status.MECHANISM, Status.ITERATION_LIMIT],
             -1)
         keep = overflow | ~newton["finite"]
         hold = lambda old, new: jax.tree.map(lambda o, n: jnp.where(keep, o, n), old, new)  # noqa: E731
@@ -1001,9 +1201,46 @@ def _increment(model: Model, state: State, loads: Loads, tangents=None, skip=Non
     c = jax.lax.while_loop(cond, body, init)
     info = {k: c[k] for k in ("status", "substeps", "iterations", "travel", "residual",
                               "balance", "snapshot", "pairs_needed", "cell_full", "approximate")}
+    info["joints"] = _joint_motion(model, state, c["state"], c["snapshot"])
     if tangents is not None:
         info.update(dstate=c["dstate"], dsnapshot=c["dsnapshot"])
     return c["state"], info
+
+
+def _joint_motion(model: Model, start: State, end: State, snap) -> dict:
+    """Largest joint slip and opening (m) of an increment, and the blocks where they are.
+
+    At each joint contact of the final geometry (open or closed, walls included,
+    intact bonds not), the relative displacement over the increment of the two
+    blocks' material points now at the contact point: its tangential part is the
+    slip, its normal part the opening (positive apart). ``slip_rel`` is the slip
+    relative to the smaller block's size, which the command line warns about
+    above :data:`LARGE_SLIP`.
+    """
+    p, n = snap["point"], snap["normal"]
+    t = jnp.stack([-n[:, 1], n[:, 0]], axis=1)
+
+    def moved(i):
+        back = _rotate(p - end.centroid[i], -(end.rot[i] - start.rot[i]))
+        return p - (start.centroid[i] + back)
+
+    a, b = snap["a"], snap["b"]
+    rel = moved(a) - moved(b)
+    joint = snap["joint"]
+    slip = jnp.where(joint, jnp.abs(jnp.sum(rel * t, axis=1)), 0.0)
+    opening = jnp.where(joint, jnp.sum(rel * n, axis=1), 0.0)
+    size = jnp.where(model.free, model.radius, jnp.inf)
+    size = jnp.minimum(size[a], size[b])
+    size = jnp.where(jnp.isfinite(size), size, 1.0)
+    i, j = jnp.argmax(slip), jnp.argmax(opening)
+    return dict(slip=slip[i], slip_rel=slip[i] / size[i], slip_blocks=jnp.stack([a[i], b[i]]),
+                opening=jnp.maximum(opening[j], 0.0), opening_blocks=jnp.stack([a[j], b[j]]))
+
+
+LARGE_SLIP = 0.05
+"""Joint slip in one increment, relative to the smaller block's size, above which the
+command line warns ("stable, but joint slip of ... at blocks ...: review"): a block
+that slid 5% of its size has moved far for an elastic answer, though it came to rest."""
 
 
 @jax.jit
@@ -1045,9 +1282,9 @@ def increment_tangent(model: Model, state: State, loads: Loads, tangents: dict):
 
 # Model fields that scene parameters change smoothly (see jaxdem.differentiable).
 SMOOTH_MODEL = ("joint_kn", "joint_ks", "joint_c", "joint_t", "joint_tanphi", "kn_inv", "ks_inv",
-                "cell_D", "bolt_k", "bolt_cap", "gamma_w")
-STATE_FLOATS = ("verts", "centroid", "u", "rot", "fs", "fn", "fn0", "bolt_force", "strain",
-                "stress")
+                "cell_D", "bolt_k", "bolt_cap", "bolt_comp", "gamma_w")
+STATE_FLOATS = ("verts", "centroid", "u", "rot", "fs", "fn", "fn0", "bolt_force", "bolt_rest",
+                "strain", "stress")
 LOAD_FLOATS = ("force", "water_y")
 SNAPSHOT_FLOATS = ("point", "normal", "fn", "fs", "pw")
 
@@ -1215,6 +1452,12 @@ def run_increment(model: Model, state: State, loads: Loads, tangents: dict | Non
             state = grow_capacity(state, capacity)
             if tangents is not None:
                 tangents = dict(tangents, state=_grow_tangent(tangents["state"], capacity))
+
+
+def _imbalance_jax(balance):
+    """:func:`_imbalance` on the device (a traced scalar)."""
+    f = balance["applied"][:2] + balance["reaction"][:2]
+    return jnp.linalg.norm(f) / jnp.maximum(balance["scale"], jnp.finfo(f.dtype).tiny)
 
 
 def _imbalance(balance) -> float:
@@ -1489,9 +1732,16 @@ class _Driver:
             self.dstate = info["dstate"]
             self.approximate |= bool(info["approximate"])
         self.status = Status(int(info["status"]))
+        bal, jm = info["balance"], info["joints"]
         rec = dict(stage=stage, step=k, load_factor=k / n, status=self.status,
                    iterations=int(info["iterations"]), substeps=int(info["substeps"]),
-                   residual=float(info["residual"]), imbalance=_imbalance(info["balance"]))
+                   residual=float(info["residual"]), imbalance=_imbalance(bal),
+                   overlap=float(bal["overlap"]), overlap_rel=float(bal["overlap_rel"]),
+                   strength_excess=float(bal["excess"]),
+                   slip=float(jm["slip"]), slip_rel=float(jm["slip_rel"]),
+                   slip_blocks=[int(x) for x in np.asarray(jm["slip_blocks"])],
+                   opening=float(jm["opening"]),
+                   opening_blocks=[int(x) for x in np.asarray(jm["opening_blocks"])])
         self.records.append(rec)
         self.history.append(dict(stage=stage, step=k, load_factor=k / n,
                                  monitors=monitor_values(self.layout, self.state, self.ref)))
@@ -1592,6 +1842,13 @@ def run(scene, model: Model, state: State, layout, data: Data, progress=None,
     N, D = model.n_blocks, model.ndof
     zero = np.zeros((1 + data.p, N, D))
     pending = zero  # applied over the first stage (uniform in-situ mode)
+    plan = _stage_plan(scene)
+    if in_situ is None and not plan:
+        # Without in-situ stress and with nothing after the loading (no stage, no
+        # excavation, no support), a bolt is part of the scene the loading builds: it
+        # acts from the first load step. Otherwise it is installed in its stage (the
+        # first, when it names none).
+        d.bolt_active[:] = True
     if in_situ is None:
         n = layout.load_steps
         base = data.weight + data.traction
@@ -1607,7 +1864,6 @@ def run(scene, model: Model, state: State, layout, data: Data, progress=None,
             base, pending = data.traction, data.weight
         d.preload(scene, base)
         d.step("initial", 1, 1, d.loads(base))
-    plan = _stage_plan(scene)
     # Displacements count from the state before the first stage, once there
     # is one and the loading before it found equilibrium.
     started = (plan or in_situ is not None) and d.status == Status.CONVERGED
@@ -1649,8 +1905,8 @@ def _stage_plan(scene) -> list[dict]:
     """The stages after the initial state, in order, with what each one does."""
     excavations = scene.excavations
     stages = list(scene.stages)
-    if not stages and (excavations or scene.supports
-                       or scene.bolts):
+    bolts_later = scene.bolts and scene.in_situ is not None
+    if not stages and (excavations or scene.supports or bolts_later):
         return [dict(name="excavation", first=True, load_steps=None, water_table=None,
                      excavations={e.name for e in excavations})]
     if not stages and scene.in_situ is not None and scene.in_situ.mode == "uniform":

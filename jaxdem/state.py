@@ -43,7 +43,7 @@ def _pytree(data: list[str], meta: list[str]):
         "max_displacement", "span_tol", "cos_parallel", "corner_share", "max_iterations",
         "max_substeps",
         "joint_intact", "gamma_w", "bolt_blocks", "bolt_offsets", "bolt_k", "bolt_cap",
-        "bolt_pullout", "cell_D", "bond_penalty", "verts0", "centroid0",
+        "bolt_comp", "bolt_pullout", "cell_D", "bond_penalty", "verts0", "centroid0",
     ],
     meta=["n_blocks", "n_vertices", "n_big", "use_cells", "cell_capacity", "linear_solver",
           "n_bolts", "has_water", "ndof", "lanes"],
@@ -87,7 +87,10 @@ class Model:
       bolt_blocks: (B, 2) int32, blocks holding the two anchors of each bolt.
       bolt_offsets: (B, 2, 2) m, anchors relative to those centroids at rotation 0.
       bolt_k: (B,) kN/m per m, axial stiffness / spacing.
-      bolt_cap: (B,) kN/m, min(yield force, anchor capacity) / spacing.
+      bolt_cap: (B,) kN/m, min(yield force, anchor capacity) / spacing: the tension
+        the bolt carries at most.
+      bolt_comp: (B,) kN/m, compression / spacing: the compression it carries at
+        most (0: none, a cable that goes slack).
       bolt_pullout: (B,) bool, the anchor capacity governs (pull-out, else yield).
       cell_D: (N, 3, 3) kPa, plane-strain elasticity of each deformable block
         (sigma = D (eps_x, eps_y, gamma_xy)); (0, 3, 3) when blocks are rigid.
@@ -144,6 +147,7 @@ class Model:
     bolt_offsets: jax.Array
     bolt_k: jax.Array
     bolt_cap: jax.Array
+    bolt_comp: jax.Array
     bolt_pullout: jax.Array
     cell_D: jax.Array
     bond_penalty: jax.Array
@@ -163,7 +167,7 @@ class Model:
 
 @_pytree(
     data=["verts", "centroid", "u", "rot", "alive", "pairs", "fs", "fn", "fn0", "failed", "edge",
-          "cstate", "present", "bolt_force", "bolt_state", "strain", "stress"],
+          "cstate", "present", "bolt_force", "bolt_state", "bolt_rest", "strain", "stress"],
     meta=["capacity"],
 )
 @dataclasses.dataclass(frozen=True)
@@ -185,7 +189,11 @@ class State:
       cstate: (P, 2, V) int32, OPEN, STICK or SLIP.
       present: (P, 2, V) bool, the slot was within the detection margin.
       bolt_force: (B,) kN/m, axial bolt force (tension positive).
-      bolt_state: (B,) int32, 0 elastic, 1 yielded, 2 pulled out.
+      bolt_state: (B,) int32, 0 elastic, 1 yielded, 2 pulled out, 3 slack (a bolt
+        that carries no compression, shortened), 4 yielded in compression.
+      bolt_rest: (B,) m, length at which the bolt carries no force: its length
+        when installed, plus its plastic elongation (yield, pull-out) less its
+        plastic shortening; 0 until installed.
       strain: (N, 3) strain of deformable blocks since the start (eps_x, eps_y,
         gamma_xy; extension positive); zero for rigid blocks.
       stress: (N, 3) kPa, stress of deformable blocks (sigma_x, sigma_y, tau_xy;
@@ -208,6 +216,7 @@ class State:
     present: jax.Array
     bolt_force: jax.Array
     bolt_state: jax.Array
+    bolt_rest: jax.Array
     strain: jax.Array
     stress: jax.Array
     capacity: int

@@ -7,7 +7,8 @@ supports, bolts, boundaries and load steps) and small hand-built block assemblie
 (stacks, blocks on inclines, wedges between fixed blocks). For every sample:
 
 - result.json is standard JSON: no NaN or infinity anywhere in ``to_dict()``;
-- a converged result is in global equilibrium (relative imbalance of every increment
+- a converged result is admissible: no overlap beyond ``solver.OVERLAP_TOL`` of the
+  block's size, and in global equilibrium (relative imbalance of every increment
   <= 1e-8 with ``solver.tolerance`` = 1e-9, <= 10 x tolerance at the default tolerance)
   and every contact spring satisfies its strength law (tension cut-off and
   Mohr-Coulomb, with cohesion and tensile strength lost once it has slipped or opened);
@@ -58,7 +59,8 @@ TIGHT = 1e-9
 """solver.tolerance of the 1e-8 equilibrium property: the tolerance bounds the relative
 residual of each block, so the default 1e-6 only bounds the global imbalance to ~1e-6."""
 DEFAULT_TOLERANCE = SolverSettings().tolerance
-STATUSES = ("converged", "mechanism", "iteration_limit", "capacity_overflow", "non_finite")
+STATUSES = ("converged", "mechanism", "iteration_limit", "capacity_overflow", "non_finite",
+            "overlap", "law_violation", "imbalance")
 
 
 # --------------------------------------------------------------------------- building blocks
@@ -656,6 +658,9 @@ def outcome_problems(result, driver, elapsed: float, tolerance: float) -> list[s
         if not worst <= bound:
             problems.append(f"converged with global imbalance {worst:.3g} > {bound:.0e}")
         problems += strength_violations(driver, tol)[:10]
+        adm = d["admissibility"]
+        if not (adm["admissible"] and adm["overlap_rel"] <= solver.OVERLAP_TOL):
+            problems.append(f"converged but not admissible: {adm}")
     else:
         if d["status"] == "converged":
             problems.append("not converged but status 'converged'")
