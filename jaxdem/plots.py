@@ -702,6 +702,14 @@ def plot_scene_check(scene: Any, path: str | Path) -> Path:
         table = np.asarray(water.table, dtype=float)
         ax.plot(table[:, 0], table[:, 1], color="tab:blue", lw=2.0, zorder=6)
         handles.append(Line2D([], [], color="tab:blue", lw=2.0, label="water table"))
+    for k, st in enumerate(getattr(scene, "stages", None) or []):
+        table = getattr(st, "water_table", None)
+        if table is not None:
+            table = np.asarray(table, dtype=float)
+            ax.plot(table[:, 0], table[:, 1], color="tab:blue", lw=1.5, ls=(0, (4, 2)),
+                    alpha=0.8, zorder=6, gid="water table")
+            handles.append(Line2D([], [], color="tab:blue", lw=1.5, ls=(0, (4, 2)),
+                                  label=f"water table from stage {k + 1} ({st.name})"))
 
     boundary_style = {
         "fixed": dict(color="k", lw=3.5, ls="-"),
