@@ -200,7 +200,8 @@ def plot_monitor_history(result: Result, path: str | Path) -> Path | None:
     # result.json). Shade that part so that the change of reference is not read as motion.
     if len(stages) > 1:
         ax.axvspan(0.0, 1.0, color="0.92", zorder=0)
-        ax.annotate("from the unloaded start", xy=(0.5, 0.0), xycoords=("data", "axes fraction"),
+        note = "in-situ state" if stages[0] == "initial" else "from the unloaded start"
+        ax.annotate(note, xy=(0.5, 0.0), xycoords=("data", "axes fraction"),
                     xytext=(0, 4), textcoords="offset points", ha="center", fontsize=7,
                     color="0.4")
     for k, name in enumerate(names):

@@ -36,6 +36,19 @@ Documented extensions and choices:
   jaxdem extensions.
 - ``[[discontinuities]] joint`` may be left out: the line then takes the scene's
   default joint.
+- ``[[blocks]] joint`` (extension): the joint of the block's faces that lie on no
+  discontinuity line. With several joints, ``[scene] default_joint`` is required when an
+  explicit block without ``joint`` has a face no line covers; two blocks of different
+  joints may share a face only where a line says which joint it is.
+- ``stage`` (excavations, bolts, supports, traction boundaries) is a stage name or its
+  1-based number; a stage that does not exist (or any stage without ``[[stages]]``) is
+  refused, listing the stages.
+- Joint sets may give ``dip`` and ``dip_direction`` ("left", "right" or an azimuth with
+  ``[scene] section_azimuth``) instead of the trace angle ``dip_deg``
+  (:func:`trace_angle`).
+- Explicit blocks may overlap by up to ``OVERLAP_TOLERANCE`` of the smaller block's size
+  in depth (rounded coordinates).
+- The user reference of all of this is docs/scene-format.md.
 - ``set``/overrides may also set an optional numeric field that the file leaves out
   (``joints.j.cohesion``), when its table exists; anything else unknown is refused.
 - ``load_scene`` also accepts TOML text (a string containing a newline).
