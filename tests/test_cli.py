@@ -91,7 +91,7 @@ def test_check_writes_figure(scene_file, tmp_path, capsys):
     out = tmp_path / "chk"
     assert main(["check", str(scene_file), "--out", str(out)]) == 0
     captured = capsys.readouterr()
-    assert captured.out.startswith("OK: 2 blocks, 1 joints")
+    assert captured.out.startswith("OK: 2 blocks, 1 joint, 1 monitor")  # "1 joint", not "1 joints"
     assert (out / "check.png").stat().st_size > 0
 
 
