@@ -2,8 +2,8 @@
 
 ::
 
-    jaxdem demo  [--out DIR]                                   # bundled demo scene
-    jaxdem run   SCENE.toml [--out DIR] [--set PATH=VALUE ...]  # solve, write results
+    jaxdem demo  [--out DIR] [--vtk]                           # bundled demo scene
+    jaxdem run   SCENE.toml [--out DIR] [--set PATH=VALUE ...] [--vtk]  # solve, write results
     jaxdem check SCENE.toml [--out DIR]                         # validate, draw blocks
     jaxdem sweep SCENE.toml --vary PATH=LOW:HIGH[:log] [--vary PATH=DIST:ARGS ...] --samples N
            [--method grid|lhs|mc] [--seed S] [--chunk C] [--out DIR] [--set PATH=VALUE ...]
@@ -26,6 +26,9 @@ bracketed (or bounded by its limits), 3 when the unstable end of the bracket
 is a trial that stopped at the iteration limit or went non-finite rather
 than a proven mechanism; it writes ``fos.json`` and its figures in both cases.
 
+``--vtk`` (run, demo) also writes ``blocks.vtk`` and ``contacts.vtk`` (legacy VTK,
+ASCII) for ParaView; ``jaxdem --version`` prints the version.
+
 JAX, the solver and matplotlib are imported inside the commands, so that
 ``jaxdem --help`` answers at once.
 """
@@ -33,6 +36,8 @@ JAX, the solver and matplotlib are imported inside the commands, so that
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import json
 import os
 import re
 import sys
@@ -57,6 +62,13 @@ MAX_TRIALS = 1024
 """Most ``fos --trials`` (factors solved together in one batch per round)."""
 MAX_FIT_ITERATIONS = 10_000
 """Most ``back-analyse --max-iterations`` (each iteration solves the scene at least once)."""
+
+
+def _version() -> str:
+    """The package version, without importing JAX (``jaxdem --version`` answers at once)."""
+    text = (Path(__file__).resolve().parent / "__init__.py").read_text()
+    found = re.search(r'^__version__ = "([^"]+)"', text, re.M)
+    return found.group(1) if found else "unknown"
 
 
 class InputError(Exception):
@@ -121,7 +133,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if not resource.is_file():
         raise InputError("the bundled demo scene jaxdem/data/demo.toml is missing")
     with resources.as_file(resource) as path:
-        return _solve_and_report(path, Path(args.out), overrides={})
+        return _solve_and_report(path, Path(args.out), overrides={}, vtk=args.vtk)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -129,7 +141,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     path = Path(args.scene)
     out = Path(args.out) if args.out else Path("out") / path.stem
     overrides = _parse_overrides([item for group in args.set or [] for item in group])
-    return _solve_and_report(path, out, overrides=overrides)
+    return _solve_and_report(path, out, overrides=overrides, vtk=args.vtk)
 
 
 def cmd_check(args: argparse.Namespace) -> int:
@@ -163,7 +175,7 @@ def cmd_back_analyse(args: argparse.Namespace) -> int:
     from inverse.plots import write_figures
 
     observations = read_observations(args.observed)
-    print(f"{_scene_name(scene, path)}: {_scene_summary(scene)}")
+    print(f"{_scene_name(scene, path, overrides)}: {_scene_summary(scene)}")
     print(f"fitting {', '.join(args.fit)} to {len(observations)} observations "
           f"({args.optimizer}, at most {args.max_iterations} iterations)")
     result = back_analyse(
@@ -201,9 +213,15 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     variables = [Variable.parse(v) for group in args.vary for v in group]
     method = args.method or ("grid" if all(v.kind == "range" for v in variables) else "lhs")
     n = draw(variables, args.samples, method, args.seed).shape[0]
-    print(f"{_scene_name(scene, path)}: {_scene_summary(scene)}")
-    print(f"sweep: {n} samples ({method}, seed {args.seed}) of "
-          + "; ".join(f"{v.path} {v.describe()}" for v in variables))
+    p = len(variables)
+    print(f"{_scene_name(scene, path, overrides)}: {_scene_summary(scene)}")
+    if method == "grid":
+        how = (f"grid: {args.samples} levels x {_plural(p, 'parameter')} = {n:,} solves "
+               "(--samples is the levels per parameter)")
+    else:
+        how = f"{method}: {n:,} samples (seed {args.seed})"
+    print(f"sweep {how}, plus {1 + 2 * p} for the tornado; "
+          + "; ".join(f"{v.path} {v.describe()}" for v in variables), flush=True)
     bar = SampleBar()
     with bar:
         result = sweep(scene, variables, args.samples, method=method, seed=args.seed,
@@ -238,7 +256,7 @@ def cmd_fos(args: argparse.Namespace) -> int:
         print(f"round {r['round']}: {trials} -> bracket [{lo}, {hi}]", file=sys.stderr,
               flush=True)
 
-    print(f"{_scene_name(scene, path)}: {_scene_summary(scene)}")
+    print(f"{_scene_name(scene, path, overrides)}: {_scene_summary(scene)}")
     result = factor_of_safety(scene, intact=args.intact, tensile=args.tensile,
                               trials=args.trials, rtol=args.tolerance, progress=report)
     written = write_outputs(result, scene, out)
@@ -256,20 +274,33 @@ def cmd_fos(args: argparse.Namespace) -> int:
 # Shared steps
 
 
-def _solve_and_report(path: Path, out: Path, overrides: dict[str, Any]) -> int:
+def _solve_and_report(path: Path, out: Path, overrides: dict[str, Any],
+                      vtk: bool = False) -> int:
     scene = _load(path, overrides)
     _check_out(out)
-    print(f"{_scene_name(scene, path)}: {_scene_summary(scene)}")
+    print(f"{_scene_name(scene, path, overrides)}: {_scene_summary(scene)}")
 
     from jaxdem import solver
     from jaxdem.plots import write_figures
 
-    bar = ProgressBar(n_stages=_count(scene, "stages"))
+    bar = ProgressBar(n_stages=_stage_count(scene))
     with bar:
         result = solver.solve(scene, progress=bar)
 
-    written = [result.write_json(out / "result.json")]
+    data = result.to_dict()
+    if overrides:
+        # result.json keeps the file's scene name and says what --set changed; the
+        # figures' titles carry both.
+        data["overrides"] = dict(overrides)
+        result = dataclasses.replace(result, scene=_scene_name(scene, path, overrides))
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "result.json").write_text(json.dumps(data, indent=2))
+    written = [out / "result.json"]
     written += write_figures(result, out)
+    if vtk:
+        from jaxdem.vtk import write_vtk
+
+        written += write_vtk(result, out)
 
     print(_result_summary(result))
     print("wrote " + ", ".join(str(p) for p in written))
@@ -433,18 +464,45 @@ def _count(scene: Any, name: str) -> int:
         return 0
 
 
-def _scene_name(scene: Any, path: Path) -> str:
-    return str(getattr(scene, "name", None) or path.stem)
+def _scene_name(scene: Any, path: Path, overrides: dict[str, Any] | None = None) -> str:
+    """The scene's name, with the ``--set`` overrides it was solved with."""
+    name = str(getattr(scene, "name", None) or path.stem)
+    if overrides:
+        name += " (--set " + " ".join(f"{k}={v:g}" for k, v in overrides.items()) + ")"
+    return name
+
+
+def _stage_count(scene: Any) -> int:
+    """Stages the solver reports progress for: the loading or initial state, then the
+    stages it runs (``[[stages]]``, or the one it makes for excavations and supports)."""
+    from jaxdem.solver import _stage_plan
+
+    return 1 + len(_stage_plan(scene))
 
 
 def _scene_summary(scene: Any) -> str:
-    """'12 blocks, 2 joints, 3 discontinuities, ...' for the parts the scene has."""
-    parts = [f"{_count(scene, 'blocks')} blocks", f"{_count(scene, 'joints')} joints"]
+    """'496 blocks (496 generated), 2 joints, 3 discontinuities, ...' for the parts the
+    scene has; a [domain]'s rock mass is generated (host NumPy, fast) to count its blocks."""
+    explicit = _count(scene, "blocks")
+    generated = 0
+    if getattr(scene, "domain", None) is not None:
+        from jaxdem.rockmass import generate
+
+        generated = len(generate(scene).pieces)
+    n = explicit + generated
+    blocks = _plural(n, "block")
+    if generated:
+        blocks += f" ({generated:,} generated" + (f", {explicit} explicit)" if explicit else ")")
+    parts = [blocks, _plural(_count(scene, "joints"), "joint")]
     for name in ("discontinuities", "boundaries", "bolts", "monitors", "stages"):
         n = _count(scene, name)
         if n:
             parts.append(f"{n} {name}" if n != 1 else f"1 {_singular(name)}")
     return ", ".join(parts)
+
+
+def _plural(n: int, word: str) -> str:
+    return f"{n:,} {word}" + ("" if n == 1 else "s")
 
 
 def _singular(name: str) -> str:
@@ -567,12 +625,19 @@ def _add_set_option(parser: argparse.ArgumentParser, help: str) -> None:
     parser.add_argument("--set", action="append", nargs="+", metavar="PATH=VALUE", help=help)
 
 
+def _add_vtk_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--vtk", action="store_true",
+                        help="also write blocks.vtk (polygons with displacement, stress, "
+                        "state) and contacts.vtk (points with forces) for ParaView")
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="jaxdem",
         description="2D block-spring discrete element analysis of tunnels in jointed rock.",
         epilog="Exit status: 0 solved (stable or not), 2 invalid input, 3 solver did not converge.",
     )
+    parser.add_argument("--version", action="version", version=f"jaxdem {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
     demo = sub.add_parser("demo", help="solve the bundled demo scene")
@@ -582,18 +647,22 @@ def _parser() -> argparse.ArgumentParser:
         metavar="DIR",
         help=f"output folder (default {DEFAULT_DEMO_OUT})",
     )
+    _add_vtk_option(demo)
     demo.set_defaults(func=cmd_demo)
 
     run = sub.add_parser("run", help="solve a scene, write result.json and figures")
     run.add_argument("scene", metavar="SCENE.toml")
-    run.add_argument("--out", metavar="DIR", help="output folder (default out/<scene name>)")
+    run.add_argument("--out", metavar="DIR",
+                     help="output folder (default out/<file name without .toml>)")
     _add_set_option(run, "override scene parameters, e.g. --set joints.set1.kn=2e6 "
                     "in_situ.k0=1.5 (repeatable)")
+    _add_vtk_option(run)
     run.set_defaults(func=cmd_run)
 
     check = sub.add_parser("check", help="validate a scene and draw its blocks")
     check.add_argument("scene", metavar="SCENE.toml")
-    check.add_argument("--out", metavar="DIR", help="output folder (default out/<scene name>)")
+    check.add_argument("--out", metavar="DIR",
+                       help="output folder (default out/<file name without .toml>)")
     check.set_defaults(func=cmd_check)
 
     back = sub.add_parser(
@@ -658,7 +727,9 @@ def _parser() -> argparse.ArgumentParser:
         "PATH=truncnormal:MEAN:SD:LOW:HIGH (repeatable)",
     )
     sw.add_argument("--samples", type=int, required=True, metavar="N",
-                    help="levels per parameter (grid) or number of draws (lhs, mc)")
+                    help="grid: levels per parameter (N^p solves for p parameters); lhs, "
+                    "mc: the number of draws. The count of solves is printed before any "
+                    "starts")
     sw.add_argument("--method", choices=("grid", "lhs", "mc"), default=None,
                     help="grid, lhs (Latin hypercube) or mc (Monte Carlo); default grid when "
                     "every parameter is a range, else lhs")

@@ -270,6 +270,11 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
             elif label == "intact":
                 edge_joint[i, k] = intact_index[pc.material]
     edge_joint[n_rock:] = -1
+    # An explicit block's own joint ([[blocks]] joint) on its faces that lie on no line.
+    for i, b in enumerate(scene.blocks):
+        if getattr(b, "joint", None) is not None:
+            faces = edge_joint[i, :len(polys[i])]
+            faces[faces < 0] = joint_index[b.joint]
 
     # Regularisation: a pseudo-mass proportional to a typical contact stiffness.
     k_block = float(np.median(kn_inv[:n_rock]))

@@ -149,8 +149,11 @@ def plot_blocks(result: Result, path: str | Path, *, magnification: float | None
         handles.append(arrow_handle)
 
     handles += _draw_bolts(ax, result, bolts, size)
+    handles += _draw_water_table(ax, geometry.get("water_table"), shown)
 
-    monitor_handles = _draw_monitors(ax, geometry.get("monitors") or {}, size)
+    moved = {name: (result.monitors or {}).get(name, {}).get("displacement")
+             for name in geometry.get("monitors") or {}}
+    monitor_handles = _draw_monitors(ax, geometry.get("monitors") or {}, size, moved)
     handles += monitor_handles
 
     _finish_axes(ax, shown + bolts)
@@ -158,6 +161,7 @@ def plot_blocks(result: Result, path: str | Path, *, magnification: float | None
     ax.legend(
         handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False
     )
+    _place_labels(fig, ax, [t for t in ax.texts if t.get_gid() == "monitor label"])
     return _save(fig, path)
 
 
@@ -189,50 +193,79 @@ def plot_monitor_history(result: Result, path: str | Path) -> Path | None:
             return None
         names = names_from_result
 
-    x = np.arange(1, len(history) + 1)
+    x, stages = stage_axis(history)
     fig, ax = _figure((8, 4.8))
+    # Before the first stage (loading, or the in-situ state) displacements count from
+    # the unloaded start; from the first stage on, from the state before it (as in
+    # result.json). Shade that part so that the change of reference is not read as motion.
+    if len(stages) > 1:
+        ax.axvspan(0.0, 1.0, color="0.92", zorder=0)
+        note = "in-situ state" if stages[0] == "initial" else "from the unloaded start"
+        ax.annotate(note, xy=(0.5, 0.0), xycoords=("data", "axes fraction"),
+                    xytext=(0, 4), textcoords="offset points", ha="center", fontsize=7,
+                    color="0.4")
     for k, name in enumerate(names):
         values = np.array(
             [float((r.get("monitors") or {}).get(name, np.nan)) for r in history], dtype=float
         )
         kind = _monitor_kind(result, name)
         label = f"{name} ({'convergence' if kind == 'section' else '|u|'})"
-        ax.plot(x, 1e3 * values, marker="o", ms=3, lw=1.5, color=f"C{k % 10}", label=label)
+        colour = f"C{k % 10}"
+        # One line per stage, starting from where the previous stage ended; the first
+        # stage after the reference state starts from 0 at its start.
+        index = np.minimum(np.floor(x - 1e-9), len(stages) - 1).astype(int)
+        labelled = False
+        for j in range(len(stages)):
+            sel = np.nonzero(index == j)[0]
+            if not len(sel):
+                continue
+            xs, ys = x[sel], 1e3 * values[sel]
+            prev = np.nonzero(index == j - 1)[0]
+            if j == 0:
+                xs, ys = np.concatenate([[0.0], xs]), np.concatenate([[0.0], ys])
+            elif j == 1 and len(stages) > 1:
+                xs, ys = np.concatenate([[1.0], xs]), np.concatenate([[0.0], ys])
+            elif j > 1 and len(prev):
+                xs = np.concatenate([[x[prev[-1]]], xs])
+                ys = np.concatenate([[1e3 * values[prev[-1]]], ys])
+            ax.plot(xs, ys, marker="o", ms=3, lw=1.5, color=colour, markevery=slice(
+                    1 if len(xs) > len(sel) else 0, None),
+                    label=None if labelled else label)
+            labelled = True
 
-    # Stage boundaries: a dashed line before the first increment of each new stage.
-    stages = [str(r.get("stage", "")) for r in history]
-    for i, stage in enumerate(stages):
-        if i == 0 or stage != stages[i - 1]:
-            if i > 0:
-                ax.axvline(i + 0.5, color="0.5", ls="--", lw=0.8)
-            ax.annotate(
-                stage,
-                xy=(i + 0.6, 1.0),
-                xycoords=("data", "axes fraction"),
-                xytext=(2, -12),
-                textcoords="offset points",
-                fontsize=8,
-                color="0.3",
-            )
-
-    load = np.array([float(r.get("load_factor", np.nan)) for r in history], dtype=float)
-    if history and np.isfinite(load).any():
-        ax2 = ax.twinx()
-        ax2.plot(x, load, color="0.6", ls=":", lw=1.2)
-        ax2.set_ylabel("load factor", color="0.45")
-        ax2.tick_params(axis="y", colors="0.45")
-        ax2.set_ylim(bottom=min(0.0, float(np.nanmin(load))))
-        ax.plot([], [], color="0.6", ls=":", label="load factor")
-
-    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-    ax.set_xlabel("load increment")
+    # Stage boundaries at whole numbers; each stage's name at its middle.
+    for j in range(1, len(stages)):
+        ax.axvline(j, color="0.5", ls="--", lw=0.8)
+    ax.set_xticks(np.arange(len(stages) + 1))
+    ax.set_xticks(np.arange(len(stages)) + 0.5, minor=True)
+    ax.set_xticklabels([""] * (len(stages) + 1))
+    ax.set_xticklabels(stages, minor=True, fontsize=8)
+    ax.tick_params(axis="x", which="minor", length=0)
+    ax.set_xlabel("stage (each spans its load steps, load factor 0 to 1)")
     ax.set_ylabel("monitor value (mm)")
-    ax.grid(True, lw=0.4, alpha=0.5)
-    if len(x):
-        ax.set_xlim(0.5, len(x) + 0.5)
+    ax.grid(True, axis="y", lw=0.4, alpha=0.5)
+    if len(stages):
+        ax.set_xlim(0.0, float(len(stages)))
     ax.legend(fontsize=8, loc="best")
     ax.set_title(f"{result.scene}: monitors")
     return _save(fig, path)
+
+
+def stage_axis(history: Sequence[dict[str, Any]]) -> tuple[np.ndarray, list[str]]:
+    """A cumulative stage axis for per-increment records: stage k (0-based, in order of
+    appearance) spans [k, k + 1] and its step at load factor f sits at k + f, so the axis
+    only grows (a new stage does not start again at 0). Returns (x, stage names)."""
+    stages: list[str] = []
+    x = []
+    for r in history:
+        stage = str(r.get("stage", ""))
+        if not stages or stages[-1] != stage:
+            stages.append(stage)
+        f = r.get("load_factor")
+        if f is None or not np.isfinite(float(f)):
+            f = 1.0
+        x.append(len(stages) - 1 + min(max(float(f), 0.0), 1.0))
+    return np.array(x, dtype=float), stages
 
 
 def plot_principal_stresses(result: Result, path: str | Path) -> Path | None:
@@ -245,9 +278,9 @@ def plot_principal_stresses(result: Result, path: str | Path) -> Path | None:
     stated in the legend as "1 m = 2000 kPa"), blue in compression, red in
     tension. Above ``_MAX_CROSSES`` blocks, one cross per cell of a
     ``_CROSS_GRID`` x ``_CROSS_GRID`` grid is drawn (the block nearest the
-    cell centre). The scale draws the 95th percentile of |sigma| at about
-    0.8 block spacings; the few longer bars (stress concentrations) are
-    clipped at 1.3 spacings, which the legend then says.
+    cell centre). The scale draws the largest |sigma| (the peak, often a
+    stress concentration at the opening) at its full length of at most 1.5
+    block spacings; no bar is clipped.
 
     Args:
       result: a :class:`~jaxdem.results.Result` whose ``geometry`` holds
@@ -301,15 +334,12 @@ def plot_principal_stresses(result: Result, path: str | Path) -> Path | None:
         spacing = float(np.sqrt(np.median(areas))) if len(areas) else 0.0
     if not spacing > 0:
         spacing = 0.05 * _model_size(shown_polys or [centroids[visible]])
-    # Scale on the 95th percentile (so a few stress concentrations at corners
-    # do not shrink every other cross to a dot); clip the few longer bars.
-    p95 = float(np.percentile(magnitude[sel], 95)) or float(magnitude[sel].max())
-    kpa_per_m = nice_ceil(p95 / (0.8 * spacing))
-    ref = 1.3 * spacing * kpa_per_m
-    clipped = float(magnitude[sel].max()) > ref
-    segments, colours = stress_crosses(
-        centroids[sel], sigma[sel], directions[sel], kpa_per_m, clip=ref if clipped else None
-    )
+    # One scale for every bar, chosen so that the largest stress (the peak an engineer
+    # looks for) is drawn at its full length, at most 1.5 block spacings; nothing is
+    # clipped. The scale is a round number of kPa per metre.
+    peak = float(magnitude[sel].max())
+    kpa_per_m = nice_ceil(peak / (1.5 * spacing))
+    segments, colours = stress_crosses(centroids[sel], sigma[sel], directions[sel], kpa_per_m)
     ax.add_collection(
         LineCollection(
             segments, colors=colours, linewidths=0.7 if thinned else 1.2, capstyle="butt", zorder=5
@@ -321,9 +351,7 @@ def plot_principal_stresses(result: Result, path: str | Path) -> Path | None:
     if (s_sel < 0).any():
         label = f"tension (max {-s_sel.min():.4g} kPa)"
         handles.append(Line2D([], [], color=_TENSION, lw=1.5, label=label))
-    note = f"scale: 1 m = {_format_number(kpa_per_m)} kPa"
-    if clipped:
-        note += f"\nbars clipped at {ref:.4g} kPa"
+    note = f"scale: 1 m = {_format_number(kpa_per_m)} kPa\n(largest bar {peak:.4g} kPa)"
     if thinned:
         note += f"\n{int(sel.sum())} of {int(visible.sum())} blocks (grid)"
     handles.append(Line2D([], [], ls="", label=note))
@@ -342,7 +370,9 @@ def plot_sections(result: Result, path: str | Path) -> Path | None:
     One group of bars per monitor, one bar per stage (coloured by stage and
     labelled with its value), as in the staged-excavation figures of tunnel
     papers: section convergence (mm, positive when the ends approach) on the
-    left, point monitors' displacement magnitude |u| (mm) on the right.
+    left, point monitors' displacement magnitude |u| (mm) on the right. Every
+    bar counts from one reference state, the state before the first stage (as
+    result.json's monitors): the loading or in-situ record before it is left out.
 
     Args:
       result: a :class:`~jaxdem.results.Result` whose ``stages`` each hold
@@ -353,6 +383,12 @@ def plot_sections(result: Result, path: str | Path) -> Path | None:
       ``path``, or ``None`` when no stage recorded a monitor (nothing is written).
     """
     stages = list(result.stages or [])
+    # One reference state for every bar: with stages after it, the first record (the
+    # loading, or the in-situ state) counts from the unloaded start and the others from
+    # the state before the first stage, so it is left out.
+    before = stages[0].get("name") if len(stages) > 1 else None
+    if before is not None:
+        stages = stages[1:]
     names: list[str] = []
     for stage in stages:
         for name, values in (stage.get("monitors") or {}).items():
@@ -417,7 +453,9 @@ def plot_sections(result: Result, path: str | Path) -> Path | None:
         bbox_to_anchor=(1.01, 1.0),
         frameon=False,
     )
-    fig.suptitle(f"{result.scene}: monitors at the end of each stage")
+    reference = ("from the state before the first stage" if before is not None
+                 else "from the start")
+    fig.suptitle(f"{result.scene}: monitors at the end of each stage ({reference})")
     return _save(fig, path)
 
 
@@ -665,6 +703,14 @@ def plot_scene_check(scene: Any, path: str | Path) -> Path:
         table = np.asarray(water.table, dtype=float)
         ax.plot(table[:, 0], table[:, 1], color="tab:blue", lw=2.0, zorder=6)
         handles.append(Line2D([], [], color="tab:blue", lw=2.0, label="water table"))
+    for k, st in enumerate(getattr(scene, "stages", None) or []):
+        table = getattr(st, "water_table", None)
+        if table is not None:
+            table = np.asarray(table, dtype=float)
+            ax.plot(table[:, 0], table[:, 1], color="tab:blue", lw=1.5, ls=(0, (4, 2)),
+                    alpha=0.8, zorder=6, gid="water table")
+            handles.append(Line2D([], [], color="tab:blue", lw=1.5, ls=(0, (4, 2)),
+                                  label=f"water table from stage {k + 1} ({st.name})"))
 
     boundary_style = {
         "fixed": dict(color="k", lw=3.5, ls="-"),
@@ -704,6 +750,7 @@ def plot_scene_check(scene: Any, path: str | Path) -> Path:
     handles += _draw_monitors(ax, monitors, size)
 
     _finish_axes(ax, everything)
+    _place_labels(fig, ax, [t for t in ax.texts if t.get_gid() == "monitor label"])
     name = getattr(scene, "name", None) or "scene"
     n_lines = len(discontinuities)
     lines = "discontinuity" if n_lines == 1 else "discontinuities"
@@ -816,12 +863,26 @@ def _draw_contacts(ax: Any, contacts: dict[str, Any], n_blocks: int) -> list[Any
     state = np.asarray(contacts.get("state", np.zeros(len(points))), dtype=int).reshape(-1)
     if not len(points):
         return []
+    # With a reference state (in-situ stress, stages), an open contact is news only where
+    # it carried a force then: corners in the far field that never touched are left out.
+    fn0 = np.asarray(contacts.get("initial_fn", np.full(len(points), np.nan)),
+                     dtype=float).reshape(-1)
+    quiet = np.zeros(len(points), dtype=bool)
+    if len(fn0) == len(points) and np.isfinite(fn0).any():
+        scale = float(np.nanmax(np.abs(fn0))) if np.isfinite(fn0).any() else 0.0
+        quiet = (state == OPEN) & ~(fn0 > 1e-6 * scale)
     marker_size = float(np.clip(400.0 / np.sqrt(len(points)), 1.0, 25.0))
     handles = []
     for code in (STICK, SLIP, OPEN):
         colour, label = _STATE_STYLE[code]
-        sel = state == code
+        sel = (state == code) & ~quiet
         count = int(sel.sum())
+        if code == OPEN and quiet.any():
+            label = "opened"
+            count_text = (f"{count}; {int(quiet.sum())} open that carried\nno force at the "
+                          "start not drawn")
+        else:
+            count_text = f"{count}"
         # Stuck springs are most of a large model and the least news: draw them smaller.
         size = marker_size if code != STICK or len(points) < 2000 else 0.4 * marker_size
         if count:
@@ -835,7 +896,7 @@ def _draw_contacts(ax: Any, contacts: dict[str, Any], n_blocks: int) -> list[Any
                 zorder=6,
             )
         handles.append(
-            Line2D([], [], ls="", marker="o", color=colour, ms=5, label=f"{label} ({count})")
+            Line2D([], [], ls="", marker="o", color=colour, ms=5, label=f"{label} ({count_text})")
         )
     return handles
 
@@ -898,7 +959,7 @@ def _draw_displacements(
         lw=1.5,
         marker=">",
         ms=5,
-        label=f"displacements x {_format_magnification(mag)}\n(max {1e3 * u_max:.3g} mm)"
+        label=f"displacements x {_format_magnification(mag)}\n(max {format_length(u_max)})"
         + ("\nlargest per grid cell" if thinned else ""),
     )
 
@@ -917,11 +978,18 @@ def _largest_per_cell(points: np.ndarray, value: np.ndarray, n_cells: int) -> np
     return keep
 
 
-def _draw_monitors(ax: Any, monitors: dict[str, Any], size: float) -> list[Any]:
-    """Monitor points (diamonds) and sections (dashed lines), labelled."""
+def _draw_monitors(ax: Any, monitors: dict[str, Any], size: float,
+                   moved: dict[str, Any] | None = None) -> list[Any]:
+    """Monitor points (diamonds) and sections (dashed lines), labelled.
+
+    ``moved``: name -> a point monitor's displacement [ux, uy] (m); the diamond is then
+    drawn where the rock point is now, with a thin line from its initial place (light
+    diamond) when it moved visibly. Labels carry gid "monitor label" so that
+    :func:`_place_labels` can move them apart.
+    """
     if not monitors:
         return []
-    offset = 0.01 * size
+    moved = moved or {}
     any_point = any_section = False
     for name, where in monitors.items():
         xy = np.asarray(where, dtype=float)
@@ -938,18 +1006,19 @@ def _draw_monitors(ax: Any, monitors: dict[str, Any], size: float) -> list[Any]:
                 zorder=8,
             )
             # Label at the "to" end: the middle is often where a point monitor sits.
-            end = seg[1]
-            ax.annotate(
-                str(name),
-                xy=end,
-                xytext=(end[0] + offset, end[1] + offset),
-                color=_MONITOR_COLOUR,
-                fontsize=8,
-                zorder=9,
-            )
+            _monitor_label(ax, name, seg[1])
             any_section = True
         elif xy.size == 2:
-            p = xy.reshape(2)
+            start = xy.reshape(2)
+            u = moved.get(name)
+            p = start
+            if u is not None and np.all(np.isfinite(np.asarray(u, dtype=float)[:2])):
+                p = start + np.asarray(u, dtype=float)[:2]
+                if np.hypot(*(p - start)) > 0.005 * size:
+                    ax.plot([start[0], p[0]], [start[1], p[1]], color=_MONITOR_COLOUR, lw=0.8,
+                            ls=":", zorder=8)
+                    ax.plot(start[0], start[1], ls="", marker="D", ms=5, mfc="none",
+                            mec=_MONITOR_COLOUR, mew=0.6, alpha=0.6, zorder=8)
             ax.plot(
                 p[0],
                 p[1],
@@ -960,15 +1029,9 @@ def _draw_monitors(ax: Any, monitors: dict[str, Any], size: float) -> list[Any]:
                 mec=_MONITOR_COLOUR,
                 mew=1.5,
                 zorder=8,
+                gid=f"monitor point {name}",
             )
-            ax.annotate(
-                str(name),
-                xy=p,
-                xytext=(p[0] + offset, p[1] + offset),
-                color=_MONITOR_COLOUR,
-                fontsize=8,
-                zorder=9,
-            )
+            _monitor_label(ax, name, p)
             any_point = True
     handles = []
     if any_point:
@@ -980,6 +1043,63 @@ def _draw_monitors(ax: Any, monitors: dict[str, Any], size: float) -> list[Any]:
     if any_section:
         handles.append(Line2D([], [], color=_MONITOR_COLOUR, ls="--", label="monitor section"))
     return handles
+
+
+def _monitor_label(ax: Any, name: str, at: np.ndarray) -> None:
+    ax.annotate(str(name), xy=at, xytext=(5, 4), textcoords="offset points",
+                color=_MONITOR_COLOUR, fontsize=8, zorder=9, gid="monitor label",
+                bbox=dict(boxstyle="square,pad=0.1", fc="white", ec="none", alpha=0.7))
+
+
+# Offsets (points) tried for a label, nearest first: right-above, right-below,
+# left-above, left-below, then further out.
+_LABEL_OFFSETS = [(5, 4, "left"), (5, -12, "left"), (-5, 4, "right"), (-5, -12, "right"),
+                  (5, 16, "left"), (5, -24, "left"), (-5, 16, "right"), (-5, -24, "right"),
+                  (5, 28, "left"), (5, -36, "left"), (-5, 28, "right"), (-5, -36, "right")]
+
+
+def _place_labels(fig: Figure, ax: Any, texts: list[Any]) -> None:
+    """Move annotation labels apart: each takes the first offset of ``_LABEL_OFFSETS``
+    whose box overlaps no label placed before it (greedy, in drawing order)."""
+    if len(texts) < 2:
+        return
+    renderer = fig.canvas.get_renderer()
+    ax.apply_aspect()
+    placed: list[Any] = []
+    for text in texts:
+        for dx, dy, ha in _LABEL_OFFSETS:
+            text.set_position((dx, dy))
+            text.set_horizontalalignment(ha)
+            box = text.get_window_extent(renderer).expanded(1.05, 1.1)
+            if not any(box.overlaps(other) for other in placed):
+                break
+        placed.append(text.get_window_extent(renderer))
+
+
+def _draw_water_table(ax: Any, table: Any, shapes: Sequence[np.ndarray]) -> list[Any]:
+    """The water table (polyline, m) as a blue line with a triangle marker; [] without."""
+    if table is None or not np.size(table):
+        return []
+    t = np.asarray(table, dtype=float).reshape(-1, 2)
+    ax.plot(t[:, 0], t[:, 1], color="tab:blue", lw=1.8, zorder=6.8, gid="water table")
+    mid = t[len(t) // 2] if len(t) > 2 else t.mean(axis=0)
+    ax.plot(mid[0], mid[1], ls="", marker="v", ms=8, color="tab:blue", zorder=6.9)
+    return [Line2D([], [], color="tab:blue", lw=1.8, marker="v", ms=6, label="water table")]
+
+
+def format_length(metres: float) -> str:
+    """A displacement for a legend, without exponents: "4.05 mm", "1.000 m", "12 um"."""
+    x = abs(float(metres))
+    if not math.isfinite(x):
+        return f"{metres} m"
+    if x >= 1.0:
+        return f"{metres:.3f} m"
+    mm = 1e3 * metres
+    if x >= 0.1:
+        return f"{mm:.0f} mm"
+    if x >= 1e-4:
+        return f"{mm:.3g} mm"
+    return f"{1e6 * metres:.3g} um"
 
 
 def principal_stresses(stress: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -1244,11 +1364,18 @@ def _figure(figsize: tuple[float, float]) -> tuple[Figure, Any]:
     return fig, fig.add_subplot()
 
 
+#: Called as ``inspect(fig, path)`` after each figure is saved, before it is released
+#: (tests look at the drawn artists through it); None: nothing.
+inspect = None
+
+
 def _save(fig: Figure, path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
         fig.savefig(path, dpi=DPI, bbox_inches="tight")
+        if inspect is not None:
+            inspect(fig, path)
     finally:
         fig.clear()  # release the artists now rather than at garbage collection
     return path

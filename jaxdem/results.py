@@ -308,6 +308,45 @@ def bolt_anchors(model, state, layout=None) -> list[np.ndarray]:
             for s in _by_scene_bolt(layout, len(ends))]
 
 
+def final_water_table(scene: Any) -> np.ndarray | None:
+    """The water table (n, 2) m at the end of the analysis: the last stage's
+    ``water_table``, else ``[water] table``; None without water."""
+    tables = [st.water_table for st in getattr(scene, "stages", ()) or ()
+              if st.water_table is not None]
+    if tables:
+        return np.asarray(tables[-1], float)
+    water = getattr(scene, "water", None)
+    return None if water is None else np.asarray(water.table, float)
+
+
+def initial_contacts(snap: dict, act: np.ndarray, ref: Any) -> dict[str, np.ndarray]:
+    """Per active contact slot of ``snap``, what the same slot (block, other block, vertex)
+    was at the reference state ``ref`` (the state before the first stage):
+    ``initial_state`` (OPEN, STICK or SLIP; -1 where it was not within the detection
+    margin then, or there is no reference) and ``initial_fn`` (kN/m, compression
+    positive; NaN likewise). The figures draw an open contact only where it carried a
+    force at the reference, so that the open contacts shown are those the analysis
+    opened, not corners of the far field that never carried anything."""
+    n = int(act.sum())
+    if ref is None:
+        return {"initial_state": np.full(n, -1, np.int32), "initial_fn": np.full(n, np.nan)}
+    cstate = np.asarray(ref.cstate)
+    fn = np.asarray(ref.fn)
+    V = cstate.shape[2]
+    pairs = np.asarray(ref.pairs)
+    present = np.asarray(ref.present)
+    known = {}
+    for p, side, v in zip(*np.nonzero(present), strict=True):
+        A, B = (pairs[p, 0], pairs[p, 1]) if side == 0 else (pairs[p, 1], pairs[p, 0])
+        known[(int(A), int(B), int(v))] = (int(cstate[p, side, v]), float(fn[p, side, v]))
+    a, b = np.asarray(snap["a"]).reshape(-1), np.asarray(snap["b"]).reshape(-1)
+    vertex = np.arange(a.size) % V
+    idx = np.nonzero(act.reshape(-1))[0]
+    found = [known.get((int(a[k]), int(b[k]), int(vertex[k])), (-1, np.nan)) for k in idx]
+    return {"initial_state": np.array([f[0] for f in found], np.int32).reshape(n),
+            "initial_fn": np.array([f[1] for f in found], float).reshape(n)}
+
+
 def build_result(scene, model, layout, state, ref, info, records, history, timing) -> Result:
     """Assemble the host Result from the final state and the increment records.
 
@@ -416,11 +455,13 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
         "excavated": ~alive,
         "walls": layout.walls,
         "contacts": {"points": snap["point"][act], "normals": snap["normal"][act], "state": st,
-                     "fn": snap["fn"][act], "fs": snap["fs"][act]},
+                     "fn": snap["fn"][act], "fs": snap["fs"][act],
+                     **initial_contacts(snap, act, ref)},
         "monitors": {name: m["points"] for name, m in layout.monitors.items()},
         "stress": stress,
         "centroids": cen[:nr],
         "bolts": bolt_anchors(model, state, layout),
+        "water_table": final_water_table(scene),
     }
     hist = [{"stage": h["stage"], "step": h["step"], "load_factor": h["load_factor"],
              "monitors": {k: _scalar(v) for k, v in h["monitors"].items()}} for h in history]

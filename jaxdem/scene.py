@@ -36,6 +36,19 @@ Documented extensions and choices:
   jaxdem extensions.
 - ``[[discontinuities]] joint`` may be left out: the line then takes the scene's
   default joint.
+- ``[[blocks]] joint`` (extension): the joint of the block's faces that lie on no
+  discontinuity line. With several joints, ``[scene] default_joint`` is required when an
+  explicit block without ``joint`` has a face no line covers; two blocks of different
+  joints may share a face only where a line says which joint it is.
+- ``stage`` (excavations, bolts, supports, traction boundaries) is a stage name or its
+  1-based number; a stage that does not exist (or any stage without ``[[stages]]``) is
+  refused, listing the stages.
+- Joint sets may give ``dip`` and ``dip_direction`` ("left", "right" or an azimuth with
+  ``[scene] section_azimuth``) instead of the trace angle ``dip_deg``
+  (:func:`trace_angle`).
+- Explicit blocks may overlap by up to ``OVERLAP_TOLERANCE`` of the smaller block's size
+  in depth (rounded coordinates).
+- The user reference of all of this is docs/scene-format.md.
 - ``set``/overrides may also set an optional numeric field that the file leaves out
   (``joints.j.cohesion``), when its table exists; anything else unknown is refused.
 - ``load_scene`` also accepts TOML text (a string containing a newline).
@@ -132,6 +145,15 @@ MAX_FILE_BYTES = 64 * 2**20
 """Largest scene file read (64 MiB; a 10,000-block scene is about 1 MiB)."""
 
 MAX_OFFSET = {"float64": 1e9, "float32": 1e3}
+
+#: Two explicit blocks may overlap by at most this depth, relative to the smaller block's
+#: size sqrt(area) (depth = 2 area / perimeter of the overlap, the thickness of a sliver):
+#: coordinates rounded to 6 decimals (1e-6 m) pass for blocks of 0.1 m and larger. A
+#: deeper overlap is refused; an accepted one is a contact already compressed by it.
+OVERLAP_TOLERANCE = 1e-5
+
+#: ``dip_direction`` words: the side of the section the joint dips towards.
+DIP_SIDES = ("left", "right")
 """Coordinates may lie at most this many model sizes from (0, 0): beyond, the dtype resolves
 less than about 1e-7 (float64) or 1e-4 (float32) of the model's size, the order of the
 solver's contact tolerance (1e-6, float32 1e-4, of the block size)."""
@@ -212,11 +234,15 @@ class Joint:
 
 @dataclass(frozen=True, eq=False)
 class Block:
-    """Explicit block: vertices (n, 2) in m, counter-clockwise and convex (read-only array)."""
+    """Explicit block: vertices (n, 2) in m, counter-clockwise and convex (read-only array).
+
+    ``joint``: the joint of its faces that lie on no ``[[discontinuities]]`` line (None:
+    ``scene.default_joint``)."""
 
     vertices: np.ndarray
     material: str
     fixed: bool = False
+    joint: str | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -419,7 +445,7 @@ SUPPORTED_SECTIONS = (
     "stages",
 )
 
-SCENE_FIELDS = ("name", "description", "default_joint")
+SCENE_FIELDS = ("name", "description", "default_joint", "section_azimuth")
 SOLVER_FIELDS = (
     "load_steps",
     "tolerance",
@@ -442,8 +468,10 @@ JOINT_FIELDS = (
     "origin",
     "persistence",
     "gap",
+    "dip",
+    "dip_direction",
 )
-BLOCK_FIELDS = ("vertices", "material", "fixed")
+BLOCK_FIELDS = ("vertices", "material", "fixed", "joint")
 DISCONTINUITY_FIELDS = ("from", "to", "joint")
 BOUNDARY_FIELDS = ("side", "from", "to", "condition", "traction", "stage")
 MONITOR_FIELDS = ("name", "point", "from", "to")
@@ -697,12 +725,75 @@ def _parse_materials(data: dict) -> dict[str, Material]:
     return out
 
 
-def _parse_joints(data: dict) -> dict[str, Joint]:
+def trace_angle(dip: float, dip_direction: str | float,
+                section_azimuth: float | None = None) -> float:
+    """Trace angle (deg, counter-clockwise from +x, in (-90, 90]) of a joint plane of
+    geological ``dip`` (deg below horizontal, 0-90) in the section's x-y plane.
+
+    ``dip_direction`` is "right" (the plane dips towards +x), "left" (towards -x), or the
+    dip direction's azimuth (deg clockwise from north) together with ``section_azimuth``,
+    the azimuth of the section's +x axis. The apparent dip in the section is
+    tan(a) = tan(dip) cos(dip_direction - section_azimuth); a plane that dips towards +x
+    descends as x grows, so its trace angle is -a (a set dipping 35 deg towards "right"
+    has trace angle -35 deg, the same line as 145 deg). Example::
+
+        >>> trace_angle(35.0, "right"), trace_angle(35.0, "left")
+        (-35.0, 35.0)
+        >>> round(trace_angle(35.0, 120.0, section_azimuth=90.0), 3)  # 30 deg off the section
+        -31.228
+    """
+    if isinstance(dip_direction, str):
+        c = 1.0 if dip_direction == "right" else -1.0
+    else:
+        c = math.cos(math.radians(float(dip_direction) - float(section_azimuth or 0.0)))
+    if dip >= 90.0:
+        return 90.0
+    return -math.degrees(math.atan(math.tan(math.radians(dip)) * c))
+
+
+def _geological_dip(t: dict, p: str, section_azimuth: float | None) -> float | None:
+    """``dip`` with ``dip_direction`` -> the trace angle (deg), None when not given."""
+    given = [k for k in ("dip", "dip_direction") if k in t]
+    if not given:
+        return None
+    if "dip_deg" in t:
+        raise SceneError(f"{p}.{given[0]}", "give either dip_deg (the trace angle) or dip and "
+                         "dip_direction (geological), not both")
+    for key, other in (("dip", "dip_direction"), ("dip_direction", "dip")):
+        if key in t and other not in t:
+            raise SceneError(f"{p}.{other}", f"required with {key} (a geological orientation "
+                             "needs dip and dip_direction)")
+    dip = _field(t, "dip", p, lo=0, hi=90)
+    raw = t["dip_direction"]
+    dp = f"{p}.dip_direction"
+    if isinstance(raw, str):
+        if raw not in DIP_SIDES:
+            raise SceneError(dp, f"must be 'left', 'right' or an azimuth in degrees (got {raw!r})")
+        direction: str | float = raw
+    else:
+        direction = _number(raw, dp)
+        _in_range(direction, raw, dp, 0, 360)
+        if section_azimuth is None:
+            raise SceneError("scene.section_azimuth",
+                             f"required with {dp} as an azimuth ({_fmt(raw)}): the azimuth of "
+                             "the section's +x axis, degrees clockwise from north")
+        if dip >= 90.0 and abs(math.cos(math.radians(direction - section_azimuth))) < 1e-9:
+            raise SceneError(dp, "the joint plane is the section plane itself (vertical, "
+                             "striking across the section): it has no trace")
+    return trace_angle(dip, direction, section_azimuth)
+
+
+def _parse_joints(data: dict, section_azimuth: float | None = None) -> dict[str, Joint]:
     out = {}
     for name, raw in _named_tables(data, "joints").items():
         p = f"joints.{name}"
         _check_table_name(name, p, "kn")
         t = _table(raw, p, JOINT_FIELDS)
+        geological = _geological_dip(t, p, section_azimuth)
+        if geological is not None:
+            if "spacing" not in t:
+                raise SceneError(f"{p}.spacing", "required with dip (a joint set needs both)")
+            t = dict(t, dip_deg=geological)
         origin = None
         if "origin" in t:
             xy = _point(t["origin"], f"{p}.origin")
@@ -820,11 +911,25 @@ def _parse_blocks(
         fixed = t.get("fixed", False)
         if not isinstance(fixed, bool):
             raise SceneError(f"{p}.fixed", f"must be true or false (got {_fmt(fixed)})")
-        blocks.append(Block(vertices=v, material=mat, fixed=fixed))
+        joint = _string(t["joint"], f"{p}.joint") if "joint" in t else None
+        blocks.append(Block(vertices=v, material=mat, fixed=fixed, joint=joint))
     return tuple(blocks)
 
 
+def overlap_depth(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """(area m2, depth m) of the overlap of two convex polygons; depth = 2 area / perimeter
+    of the overlap, the thickness of a sliver (0, 0 when they do not overlap)."""
+    clip = geometry.convex_clip(np.asarray(a, float), np.asarray(b, float))
+    if len(clip) < 3:
+        return 0.0, 0.0
+    area = abs(geometry.signed_area(clip))
+    perimeter = float(np.sum(np.hypot(*(np.roll(clip, -1, axis=0) - clip).T)))
+    return area, (2.0 * area / perimeter if perimeter > 0.0 else 0.0)
+
+
 def _check_overlaps(blocks: tuple[Block, ...]) -> None:
+    """Refuse explicit blocks that overlap deeper than OVERLAP_TOLERANCE times the smaller
+    block's size sqrt(area)."""
     if not blocks:
         return
     polys = [b.vertices for b in blocks]
@@ -832,12 +937,103 @@ def _check_overlaps(blocks: tuple[Block, ...]) -> None:
     pairs = geometry.find_overlapping_pairs(polys, 1e-9 * min(areas))
     bad = []
     for i, j in pairs:
-        a = geometry.overlap_area(polys[i], polys[j])
-        if a > 1e-9 * min(areas[i], areas[j]):
-            bad.append((j, i, a))
+        a, depth = overlap_depth(polys[i], polys[j])
+        size = math.sqrt(min(areas[i], areas[j]))
+        if depth > OVERLAP_TOLERANCE * size:
+            bad.append((j, i, a, depth, size))
     if bad:
-        j, i, a = min(bad)
-        raise SceneError(f"blocks.{j}", f"overlaps blocks.{i} (area {a:.3g} m2)")
+        j, i, a, depth, size = min(bad)
+        raise SceneError(
+            f"blocks.{j}",
+            f"overlaps blocks.{i} (area {a:.3g} m2): {depth:.3g} m deep, where up to "
+            f"{OVERLAP_TOLERANCE:g} of the smaller block's size ({OVERLAP_TOLERANCE * size:.3g} "
+            "m) is accepted",
+        )
+
+
+def _shared_faces(blocks: tuple[Block, ...], tol: float) -> list[tuple[int, int, np.ndarray,
+                                                                         np.ndarray]]:
+    """(i, j, p, q): blocks i < j share the segment p-q of a face (anti-parallel edges on
+    one line, overlapping by more than ``tol``)."""
+    out = []
+    boxes = np.array([geometry.bbox(b.vertices) for b in blocks]).reshape(-1, 4)
+    for i in range(len(blocks)):
+        near = np.nonzero((boxes[i + 1:, 0] <= boxes[i, 2] + tol)
+                          & (boxes[i, 0] <= boxes[i + 1:, 2] + tol)
+                          & (boxes[i + 1:, 1] <= boxes[i, 3] + tol)
+                          & (boxes[i, 1] <= boxes[i + 1:, 3] + tol))[0] + i + 1
+        va = blocks[i].vertices
+        for j in near:
+            vb = blocks[j].vertices
+            for a0, a1 in zip(va, np.roll(va, -1, axis=0), strict=True):
+                d = a1 - a0
+                L = float(np.hypot(*d))
+                t = d / L
+                n = np.array([-t[1], t[0]])
+                for b0, b1 in zip(vb, np.roll(vb, -1, axis=0), strict=True):
+                    if abs((b0 - a0) @ n) > tol or abs((b1 - a0) @ n) > tol:
+                        continue
+                    lo = max(0.0, min((b0 - a0) @ t, (b1 - a0) @ t))
+                    hi = min(L, max((b0 - a0) @ t, (b1 - a0) @ t))
+                    if hi - lo > tol and (b1 - b0) @ t < 0.0:
+                        out.append((i, int(j), a0 + lo * t, a0 + hi * t))
+    return out
+
+
+def _on_discontinuity(p: np.ndarray, q: np.ndarray, discs: tuple, tol: float) -> bool:
+    """Whether the segment p-q lies on a [[discontinuities]] line (as the model reads it)."""
+    for d in discs:
+        e = d.end - d.start
+        L = float(np.hypot(*e))
+        t = e / L
+        n = np.array([-t[1], t[0]])
+        if abs((p - d.start) @ n) <= tol and abs((q - d.start) @ n) <= tol:
+            sp, sq = (p - d.start) @ t, (q - d.start) @ t
+            if min(sp, sq) >= -tol and max(sp, sq) <= L + tol:
+                return True
+    return False
+
+
+def _check_block_joints(blocks: tuple[Block, ...], discs: tuple, joints: dict,
+                        has_default: bool, default_joint: str, tol: float) -> None:
+    """Which joint each explicit block face gets must be explicit.
+
+    A face on a [[discontinuities]] line takes that line's joint; any other face takes its
+    block's ``joint``, else ``scene.default_joint``. With several joints, a block that
+    has neither and a face no line covers is ambiguous (refused). Two blocks whose joints
+    differ may share a face only where a line says which joint it is.
+    """
+    if not blocks:
+        return
+    if len(joints) > 1 and not has_default:
+        for i, b in enumerate(blocks):
+            if b.joint is not None:
+                continue
+            v = b.vertices
+            for k, (p, q) in enumerate(zip(v, np.roll(v, -1, axis=0), strict=True)):
+                if not _on_discontinuity(p, q, discs, tol):
+                    raise SceneError(
+                        "scene.default_joint",
+                        f"required when the scene has several joints ({', '.join(joints)}) "
+                        f"and explicit blocks: face {k} of blocks.{i} ({_fmt_point(p)}-"
+                        f"{_fmt_point(q)}) lies on no [[discontinuities]] line, so its joint "
+                        "is not given; set [scene] default_joint = NAME, or joint = NAME on "
+                        "the [[blocks]]",
+                    )
+    if len(joints) < 2 or all(b.joint is None for b in blocks):
+        return
+    own = [b.joint if b.joint is not None else default_joint for b in blocks]
+    for i, j, p, q in _shared_faces(blocks, tol):
+        if own[i] != own[j] and not _on_discontinuity(p, q, discs, tol):
+            which = {i: "joint" if blocks[i].joint is not None else "default_joint",
+                     j: "joint" if blocks[j].joint is not None else "default_joint"}
+            path = f"blocks.{j}.joint" if blocks[j].joint is not None else f"blocks.{i}.joint"
+            raise SceneError(
+                path,
+                f"blocks.{i} ({which[i]} {own[i]!r}) and blocks.{j} ({which[j]} {own[j]!r}) "
+                f"share the face {_fmt_point(p)}-{_fmt_point(q)} but their joints differ; put a "
+                "[[discontinuities]] line on that face to say which joint it is",
+            )
 
 
 def _segment_touches_box(a: np.ndarray, b: np.ndarray, box: tuple, tol: float) -> bool:
@@ -1198,11 +1394,32 @@ def _parse_stages(data: dict) -> tuple[Stage, ...]:
 
 
 def _stage_ref(t: dict, path: str, stages: tuple[Stage, ...]) -> str | None:
+    """``stage``: a [[stages]] name, or its 1-based number (as RS2 and UDEC number them);
+    returns the name. A stage that does not exist would never come: refused, with the
+    stages that do."""
     if "stage" not in t:
         return None
+    raw = t["stage"]
+    sp = f"{path}.stage"
     names = [s.name for s in stages]
-    return _defined_name(t["stage"], f"{path}.stage", "stage", names,
-                         none="none ([[stages]] name = ...)")
+    listed = ", ".join(f"{k + 1} {n!r}" for k, n in enumerate(names))
+    if not names:
+        raise SceneError(sp, f"unknown stage {_fmt(raw)}: it never comes, the scene has no "
+                         "[[stages]] "
+                         "(define them, [[stages]] name = ..., or leave stage out: it then "
+                         "acts from the first stage of the analysis)")
+    if isinstance(raw, str):
+        if raw not in names:
+            raise SceneError(sp, f"unknown stage {raw!r} (it would never come): stages are "
+                             f"{listed}")
+        return raw
+    if _is_number(raw):
+        if raw != math.floor(raw) or not 1 <= raw <= len(names):
+            raise SceneError(sp, f"stage {_fmt(raw)} does not exist: stages are {listed} "
+                             "(a number counts from 1)")
+        return names[int(raw) - 1]
+    raise SceneError(sp, f"must be a stage name or its number from 1 (got {_fmt(raw)}); "
+                     f"stages are {listed}")
 
 
 def _segments_for(radius: float, h: float) -> int:
@@ -1554,9 +1771,10 @@ def _parse(data: Any, source: str) -> Scene:
         raise SceneError("scene.name", "must not be empty")
     description = _string(head.get("description", ""), "scene.description")
 
+    section_azimuth = _field(head, "section_azimuth", "scene", lo=0, hi=360)
     solver = _parse_solver(data)
     materials = _parse_materials(data)
-    joints = _parse_joints(data)
+    joints = _parse_joints(data, section_azimuth)
     domain = _parse_domain(data, materials)
     blocks = _parse_blocks(data, materials, has_domain=domain is not None)
     if domain is None:
@@ -1575,6 +1793,10 @@ def _parse(data: Any, source: str) -> Scene:
         default_joint = ""
     if not joints and len(blocks) > 1:
         raise SceneError("joints", "at least one joint is needed for contacts between blocks")
+    for i, b in enumerate(blocks):
+        if b.joint is not None and b.joint not in joints:
+            defined = ", ".join(joints) or "none"
+            raise SceneError(f"blocks.{i}.joint", f"unknown joint {b.joint!r}; defined: {defined}")
 
     rock_points = [b.vertices for b in blocks]
     if domain is not None:
@@ -1593,6 +1815,8 @@ def _parse(data: Any, source: str) -> Scene:
     excavations = _parse_excavations(data, domain, joints, stages, box, tol, far)
     _check_block_count(domain, joints, excavations, len(blocks))
     discontinuities = _parse_discontinuities(data, joints, default_joint, box, tol)
+    _check_block_joints(blocks, discontinuities, joints, "default_joint" in head,
+                        default_joint, 1e3 * tol)
     rock = _Rock(blocks, domain, excavations, tol)
     boundaries = _parse_boundaries(data, box, tol, stages, rock)
     # Lines may reach beyond the rock, but not beyond what the dtype resolves.

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import io
 import itertools
 import math
 from collections.abc import Mapping, Sequence
@@ -36,7 +37,7 @@ from scipy.special import ndtr, ndtri
 from jaxdem.batch import BatchResult, solve_batch
 from jaxdem.differentiable import NotSmooth
 from jaxdem.results import jsonable
-from jaxdem.scene import SceneError
+from jaxdem.scene import SceneError, apply_overrides
 
 METHODS = ("grid", "lhs", "mc")
 KINDS = ("range", "uniform", "normal", "lognormal", "truncnormal")
@@ -219,14 +220,26 @@ class SweepResult:
             out.append(row)
         return out
 
-    def to_csv(self, path) -> Path:
+    def to_csv(self, path=None) -> Path | str:
+        """The table of :meth:`rows` as CSV: written to ``path`` (returns the path), or,
+        without a path, returned as text.
+
+        Example::
+
+            text = result.to_csv()                 # "sample,joints.base.kn,...\r\n0,..."
+            result.to_csv("out/sweep.csv")          # Path("out/sweep.csv")
+        """
+        buffer = io.StringIO(newline="")
+        w = csv.DictWriter(buffer, fieldnames=self.columns())
+        w.writeheader()
+        for row in self.rows():
+            w.writerow({k: (repr(v) if isinstance(v, float) else v) for k, v in row.items()})
+        if path is None:
+            return buffer.getvalue()
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         with path.open("w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=self.columns())
-            w.writeheader()
-            for row in self.rows():
-                w.writerow({k: (repr(v) if isinstance(v, float) else v) for k, v in row.items()})
+            f.write(buffer.getvalue())
         return path
 
     def to_dict(self) -> dict:
@@ -370,6 +383,11 @@ def _take(batch: BatchResult, rows: slice) -> BatchResult:
 def _check_values(scene, variables, theta) -> None:
     """Refuse draws the scene would refuse (a negative stiffness from a wide normal)."""
     for j, v in enumerate(variables):
+        try:  # the path itself first: a typo is the parameter's fault, not a sample's
+            apply_overrides(scene.data, {v.path: float(theta[0, j])})
+        except SceneError as err:
+            raise SceneError(f"--vary {v.path}", f"{err.problem} in the scene (a parameter "
+                             "path such as joints.NAME.kn or bolts.0.stiffness)") from None
         for i in (int(np.argmin(theta[:, j])), int(np.argmax(theta[:, j]))):
             try:
                 scene.with_overrides({v.path: float(theta[i, j])})

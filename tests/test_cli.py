@@ -91,7 +91,7 @@ def test_check_writes_figure(scene_file, tmp_path, capsys):
     out = tmp_path / "chk"
     assert main(["check", str(scene_file), "--out", str(out)]) == 0
     captured = capsys.readouterr()
-    assert captured.out.startswith("OK: 2 blocks, 1 joints")
+    assert captured.out.startswith("OK: 2 blocks, 1 joint, 1 monitor")  # "1 joint", not "1 joints"
     assert (out / "check.png").stat().st_size > 0
 
 
@@ -370,3 +370,111 @@ def test_demo_solves_the_bundled_tunnel(tmp_path, capsys):
     assert result["monitors"]["span"]["convergence"] > 0  # the tunnel closes in
     assert all(b["state"] in ("elastic", "yielded", "pulled out") for b in result["bolts"])
     assert (out / "blocks.png").stat().st_size > 0
+
+
+# --------------------------------------------------------------------------- issue 19: console
+
+
+def test_version(capsys):
+    from jaxdem import __version__
+
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out.strip() == f"jaxdem {__version__}"
+
+
+def test_help_names_the_real_default_out_dir(capsys):
+    assert main(["run", "--help"]) == 0
+    out = capsys.readouterr().out
+    assert "out/<file name without .toml>" in out and "<scene name>" not in out
+
+
+def test_scene_summary_counts_generated_blocks_and_plurals(scene_file):
+    from jaxdem.cli import _scene_summary
+    from jaxdem.rockmass import generate
+    from jaxdem.scene import load_scene
+
+    assert _scene_summary(load_scene(scene_file)) == "2 blocks, 1 joint, 1 monitor"
+    demo = load_scene("jaxdem/data/demo.toml")
+    n = len(generate(demo).pieces)
+    assert n > 400
+    assert _scene_summary(demo).startswith(f"{n:,} blocks ({n:,} generated), 2 joints")
+
+
+def test_stage_counter_counts_the_stages_the_solver_reports():
+    from jaxdem.cli import _stage_count
+    from jaxdem.scene import load_scene
+
+    # The demo: the in-situ state, then one excavation stage ("1/2, 2/2", not "3/3").
+    assert _stage_count(load_scene("jaxdem/data/demo.toml")) == 2
+    # Two [[stages]] after the in-situ state.
+    assert _stage_count(load_scene("examples/staged_tunnel.toml")) == 3
+    bar = ProgressBar(n_stages=3, stream=_Stream(False), width=10)
+    seen = [bar.format(_event(stage, 1)).split(" [")[0]
+            for stage in ("initial", "heading", "bench")]
+    assert seen == ["stage 1/3 initial", "stage 2/3 heading", "stage 3/3 bench"]
+
+
+def test_set_is_shown_with_the_scene_name(fake_solver, scene_file, tmp_path, capsys):
+    out = tmp_path / "o"
+    assert main(["run", str(scene_file), "--out", str(out), "--set", "joints.j.kn=2e7"]) == 0
+    first = capsys.readouterr().out.splitlines()[0]
+    assert first.startswith("block on base (--set joints.j.kn=2e+07): 2 blocks")
+    data = json.loads((out / "result.json").read_text())
+    assert data["scene"] == "block on base"
+    assert data["overrides"] == {"joints.j.kn": 2e7}
+
+
+def test_sweep_says_what_it_will_solve_before_starting(scene_file, tmp_path, capsys,
+                                                       monkeypatch):
+    import importlib
+
+    sweep_module = importlib.import_module("jaxdem.sweep")  # jaxdem.sweep is also the function
+
+    class Started(Exception):
+        pass
+
+    def sweep(*args, **kwargs):
+        raise Started
+
+    monkeypatch.setattr(sweep_module, "sweep", sweep)
+    with pytest.raises(Started):
+        main(["sweep", str(scene_file), "--vary", "joints.j.kn=1e6:1e7:log",
+              "joints.j.friction_deg=20:40", "--samples", "16", "--out", str(tmp_path / "s")])
+    out = capsys.readouterr().out
+    assert ("sweep grid: 16 levels x 2 parameters = 256 solves (--samples is the levels per "
+            "parameter), plus 5 for the tornado") in out
+    with pytest.raises(Started):
+        main(["sweep", str(scene_file), "--vary", "joints.j.kn=1e6:1e7:log", "--samples", "16",
+              "--method", "lhs", "--out", str(tmp_path / "s")])
+    assert "sweep lhs: 16 samples (seed 0), plus 3 for the tornado" in capsys.readouterr().out
+
+
+def test_bad_vary_path_names_the_parameter_not_a_sample(scene_file, tmp_path, capsys):
+    code = main(["sweep", str(scene_file), "--vary", "joints.nope.kn=1e6:1e7", "--samples", "2",
+                 "--out", str(tmp_path / "s")])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: --vary joints.nope.kn: no such parameter in the scene")
+    assert "sample" not in err
+
+
+def test_sweep_to_csv_without_a_path_returns_the_text(tmp_path):
+    from jaxdem.batch import BatchResult
+    from jaxdem.sweep import SweepResult, Variable
+
+    batch = BatchResult(params=["joints.j.kn"], theta=np.array([[1e6], [2e6]]),
+                        monitors={"top": np.array([[0.0, -1e-3], [0.0, -5e-4]])},
+                        status=["converged", "mechanism"], stable=np.array([True, False]),
+                        converged=np.array([True, False]), iterations=np.array([3, 9]),
+                        timing={})
+    result = SweepResult(variables=[Variable.parse("joints.j.kn=1e6:2e6")], method="grid",
+                         seed=0, batch=batch, tornado={}, probability={}, mode="batched")
+    text = result.to_csv()
+    assert isinstance(text, str)
+    assert text.splitlines() == [
+        "sample,joints.j.kn,top.ux,top.uy,stable,converged,status",
+        "0,1000000.0,0.0,-0.001,True,True,converged",
+        "1,2000000.0,0.0,-0.0005,False,False,mechanism",
+    ]
+    path = result.to_csv(tmp_path / "sweep.csv")
+    assert path.read_bytes().decode() == text  # the same CSV (csv.writer line ends)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import matplotlib
+import matplotlib.collections
 import numpy as np
 import pytest
 
@@ -334,3 +336,147 @@ def test_many_block_stresses_are_thinned(tmp_path):
     keep = plots._nearest_centre_per_cell(c, np.ones(len(c), dtype=bool), plots._CROSS_GRID)
     assert keep.sum() == plots._CROSS_GRID**2
     _assert_png(plots.plot_principal_stresses(result, tmp_path / "stresses.png"))
+
+
+# --------------------------------------------------------------------------- issue 19: drawn data
+
+
+@pytest.fixture
+def drawn(monkeypatch):
+    """The figures as drawn: {file name: Figure}, kept through ``plots.inspect``."""
+    figures: dict = {}
+
+    def keep(fig, path):
+        figures[path.name] = {
+            "texts": [(t.get_gid(), t.get_text(), t.get_window_extent())
+                      for ax in fig.axes for t in ax.texts],
+            "lines": [(line.get_gid(), np.asarray(line.get_xdata(), float),
+                       np.asarray(line.get_ydata(), float), line.get_label())
+                      for ax in fig.axes for line in ax.lines],
+            "collections": [c for ax in fig.axes for c in ax.collections],
+            "legend": [t.get_text() for ax in fig.axes if ax.get_legend()
+                       for t in ax.get_legend().get_texts()],
+            "axes": list(fig.axes),
+        }
+
+    monkeypatch.setattr(plots, "inspect", keep)
+    return figures
+
+
+def test_monitor_labels_do_not_overlap(tmp_path, drawn):
+    # The demo's case: a point monitor "crown" at the end of the section "height".
+    result = make_result()
+    result.monitors["height"] = {"convergence": 1e-3, "along": [0.0, 0.0]}
+    result.monitors["span"] = {"convergence": 1e-3, "along": [0.0, 0.0]}
+    result.geometry["monitors"] = {
+        "crown": np.array([0.5, 2.5]),
+        "height": np.array([[0.5, 0.5], [0.5, 2.5]]),
+        "span": np.array([[0.0, 2.5], [0.5, 2.5]]),
+    }
+    plots.plot_blocks(result, tmp_path / "blocks.png")
+    boxes = [box for gid, _, box in drawn["blocks.png"]["texts"] if gid == "monitor label"]
+    assert len(boxes) == 3
+    for i in range(3):
+        for j in range(i + 1, 3):
+            assert not boxes[i].overlaps(boxes[j]), (i, j)
+
+
+def test_monitor_marker_follows_the_rock_point(tmp_path, drawn):
+    result = make_result(moving=True)
+    result.monitors["crown"]["displacement"] = [0.9, -0.3]  # a block that slid
+    plots.plot_blocks(result, tmp_path / "blocks.png")
+    marker = [(x, y) for gid, x, y, _ in drawn["blocks.png"]["lines"]
+              if gid == "monitor point crown"]
+    assert len(marker) == 1
+    assert marker[0][0] == pytest.approx([0.5 + 0.9])
+    assert marker[0][1] == pytest.approx([2.5 - 0.3])
+
+
+def test_displacement_legend_has_no_exponent(tmp_path, drawn):
+    result = make_result(moving=True)
+    result.blocks[2]["u"] = [1.0, 0.0, 0.0]  # 1 m: used to read "max 1e+03 mm"
+    plots.plot_blocks(result, tmp_path / "blocks.png")
+    legend = " ".join(drawn["blocks.png"]["legend"])
+    assert "max 1.000 m" in legend
+    assert "e+" not in legend
+    assert plots.format_length(4.05e-3) == "4.05 mm"
+    assert plots.format_length(0.25) == "250 mm"
+    assert plots.format_length(2.5e-5) == "25 um"
+
+
+def test_water_table_is_drawn(tmp_path, drawn):
+    result = make_result()
+    table = np.array([[-0.5, 2.5], [2.5, 1.5]])
+    result.geometry["water_table"] = table
+    plots.plot_blocks(result, tmp_path / "blocks.png")
+    lines = [(x, y) for gid, x, y, _ in drawn["blocks.png"]["lines"] if gid == "water table"]
+    assert len(lines) == 1
+    np.testing.assert_allclose(np.column_stack(lines[0]), table)
+    assert "water table" in drawn["blocks.png"]["legend"]
+
+
+def test_open_contacts_that_never_carried_force_are_not_drawn(tmp_path, drawn):
+    result = make_result()
+    c = result.geometry["contacts"]
+    # Three open contacts: one that carried 50 kN/m before the first stage (opened by
+    # the analysis), two far-field corners that carried nothing.
+    c["points"] = np.vstack([c["points"], [[0.0, 0.5], [2.0, 0.5]]])
+    c["normals"] = np.tile([0.0, 1.0], (7, 1))
+    c["state"] = np.concatenate([c["state"], [OPEN, OPEN]])
+    c["fn"], c["fs"] = np.zeros(7), np.zeros(7)
+    c["initial_fn"] = np.array([10.0, 10.0, 10.0, 50.0, 10.0, 0.0, 1e-13])
+    plots.plot_blocks(result, tmp_path / "blocks.png")
+    red = [col for col in drawn["blocks.png"]["collections"]
+           if len(col.get_facecolors()) and np.allclose(
+               col.get_facecolors()[0][:3], matplotlib.colors.to_rgb("tab:red"))]
+    assert len(red) == 1
+    np.testing.assert_allclose(red[0].get_offsets(), [[2.0, 2.0]])
+    assert any("opened (1; 2 open" in t for t in drawn["blocks.png"]["legend"])
+
+
+def test_monitor_history_axis_only_grows(tmp_path, drawn):
+    # Two stages of two steps: the load factor goes 0.5, 1, 0.5, 1, which used to be drawn
+    # as a line dropping back between stages; the x axis is now stage + load factor.
+    result = make_result()
+    plots.plot_monitor_history(result, tmp_path / "monitors.png")
+    fig = drawn["monitors.png"]
+    assert not any("load factor" == label for *_, label in fig["lines"])
+    assert len(fig["axes"]) == 1  # no twin load-factor axis
+    series = [(x, y) for gid, x, y, label in fig["lines"] if len(x) > 1]
+    assert series
+    xs = np.concatenate([x for x, _ in series])
+    assert xs.min() == 0.0 and xs.max() == 2.0
+    for x, _ in series:
+        assert np.all(np.diff(x) >= 0)
+    x, stages = plots.stage_axis(result.history)
+    assert stages == ["gravity", "excavate"]
+    np.testing.assert_allclose(x, [0.5, 1.0, 1.5, 2.0])
+
+
+def test_stress_bar_scale_covers_the_peak(tmp_path, drawn):
+    result = make_tunnel_result()
+    result.geometry["stress"][4] = [8771.0, 100.0, 0.0]  # a peak 30 times the field
+    plots.plot_principal_stresses(result, tmp_path / "stresses.png")
+    fig = drawn["stresses.png"]
+    note = next(t for t in fig["legend"] if t.startswith("scale: 1 m = "))
+    kpa_per_m = float(note.split("= ")[1].split(" kPa")[0])
+    bars = [c for c in fig["collections"] if isinstance(c, matplotlib.collections.LineCollection)
+            and len(c.get_segments()) == 2 * 10]
+    assert len(bars) == 1
+    lengths = [np.hypot(*(s[1] - s[0])) for s in bars[0].get_segments()]
+    assert max(lengths) * kpa_per_m == pytest.approx(8771.0, rel=1e-9)
+    assert "largest bar 8771 kPa" in note
+
+
+def test_sections_use_one_reference_state(tmp_path, drawn):
+    result = make_tunnel_result()
+    result.stages = [
+        {"name": "loading", "monitors": {"s1": [5e-3, 9e-3], "crown": [4e-3, 8e-3]}},
+        {"name": "excavate", "monitors": {"s1": [1e-3, 2.5e-3], "crown": [1e-3, 3e-3]}},
+        {"name": "bench", "monitors": {"s1": [3e-3], "crown": [4e-3]}},
+    ]
+    plots.plot_sections(result, tmp_path / "sections.png")
+    fig = drawn["sections.png"]
+    assert fig["legend"] == ["excavate", "bench"]  # "loading" counts from another state
+    labels = [t for gid, t, _ in fig["texts"]]
+    assert "9" not in labels and "2.5" in labels and "3" in labels

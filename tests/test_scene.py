@@ -960,3 +960,219 @@ def test_rock_scene_check_figure(tmp_path: Path):
 
     path = plot_scene_check(parse_scene(rock_scene_dict()), tmp_path / "check.png")
     assert path.stat().st_size > 10_000
+
+
+# --------------------------------------------------------------------------- issue 19 / 16
+
+
+def two_joint_dict() -> dict:
+    """The valid scene with a second joint "weak" defined before "j"."""
+    data = valid_scene_dict()
+    data["joints"] = {"weak": {"kn": 1e5, "ks": 1e4, "friction_deg": 10.0},
+                      "j": data["joints"]["j"]}
+    return data
+
+
+def test_several_joints_without_default_joint_are_refused():
+    # Before: the first joint in the file ("weak") silently applied to the faces between
+    # the two stacked blocks; swapping the sections changed the answer.
+    with pytest.raises(SceneError) as info:
+        parse_scene(two_joint_dict())
+    assert info.value.path == "scene.default_joint"
+    assert "required when the scene has several joints (weak, j)" in str(info.value)
+    assert "blocks.0" in str(info.value)
+
+
+def test_default_joint_or_block_joint_settles_the_faces():
+    from jaxdem.model import build
+
+    data = two_joint_dict()
+    data["scene"]["default_joint"] = "j"
+    scene = parse_scene(data)
+    assert scene.default_joint == "j"
+    model, _, _ = build(scene)
+    # The stacked blocks' faces lie on no discontinuity: -1, the default joint's row
+    # (the last) in the contact kernel, which holds joint "j".
+    ej = np.asarray(model.edge_joint)
+    assert set(ej[2, :4]) == {-1}
+    assert float(model.joint_kn[model.joint_kn.shape[0] - 1]) == 1e6
+
+    data = two_joint_dict()
+    for b in data["blocks"]:
+        b["joint"] = "weak"
+    scene = parse_scene(data)
+    assert [b.joint for b in scene.blocks] == ["weak"] * 3
+    model, _, _ = build(scene)
+    ej = np.asarray(model.edge_joint)
+    assert set(ej[2, :4]) == {0}  # "weak" is row 0
+    # The base's top face lies on the discontinuity of joint "j" (row 1): the line wins.
+    assert ej[0, 2] == 1
+
+
+def test_order_of_joint_sections_does_not_matter_with_default_joint():
+    from jaxdem.model import build
+
+    rows = []
+    for order in (("weak", "j"), ("j", "weak")):
+        data = two_joint_dict()
+        data["joints"] = {k: data["joints"][k] for k in order}
+        data["scene"]["default_joint"] = "j"
+        model, _, _ = build(parse_scene(data))
+        ej = np.asarray(model.edge_joint)[2, :4]
+        assert set(ej) == {-1}
+        rows.append(float(np.asarray(model.joint_kn)[ej[0]]))  # -1: the default row
+    assert rows == [1e6, 1e6]
+
+
+def test_blocks_with_different_joints_sharing_a_face_need_a_line():
+    data = two_joint_dict()
+    data["scene"]["default_joint"] = "j"
+    data["blocks"][2]["joint"] = "weak"  # the top block; its lower face is block 1's top
+    with pytest.raises(SceneError) as info:
+        parse_scene(data)
+    assert info.value.path == "blocks.2.joint"
+    message = str(info.value)
+    assert "blocks.1 (default_joint 'j') and blocks.2 (joint 'weak')" in message
+    assert "share the face (2, 2)-(1, 2)" in message
+    # A discontinuity on the shared face says which joint it is.
+    data["discontinuities"].append({"from": [0.0, 2.0], "to": [4.0, 2.0], "joint": "weak"})
+    parse_scene(data)
+
+
+def test_unknown_block_joint_is_refused():
+    data = two_joint_dict()
+    data["scene"]["default_joint"] = "j"
+    data["blocks"][1]["joint"] = "strong"
+    with pytest.raises(SceneError, match=r"^blocks\.1\.joint: unknown joint 'strong'; "
+                                         r"defined: weak, j$"):
+        parse_scene(data)
+
+
+def test_single_joint_scenes_need_no_default_joint():
+    scene = parse_scene(valid_scene_dict())
+    assert scene.default_joint == "j"
+
+
+def _staged(data: dict, ref) -> dict:
+    data["stages"] = [{"name": "excavate"}, {"name": "bolt"}]
+    data["excavations"][1]["stage"] = ref
+    data["bolts"][0]["stage"] = ref
+    data["supports"][0]["stage"] = ref
+    return data
+
+
+def test_stage_by_number_is_the_stage_of_that_number():
+    scene = parse_scene(_staged(rock_scene_dict(), 2))
+    assert scene.excavations[1].stage == "bolt"
+    assert scene.bolts[0].stage == "bolt"
+    assert scene.supports[0].stage == "bolt"
+    assert parse_scene(_staged(rock_scene_dict(), 1)).bolts[0].stage == "excavate"
+    assert parse_scene(_staged(rock_scene_dict(), "bolt")).bolts[0].stage == "bolt"
+
+
+@pytest.mark.parametrize(("ref", "words"), [
+    (3, "stage 3 does not exist: stages are 1 'excavate', 2 'bolt' (a number counts from 1)"),
+    (0, "stage 0 does not exist: stages are 1 'excavate', 2 'bolt'"),
+    (1.5, "stage 1.5 does not exist"),
+    ("blot", "unknown stage 'blot' (it would never come): stages are 1 'excavate', 2 'bolt'"),
+    (True, "must be a stage name or its number from 1 (got True)"),
+])
+def test_wrong_stage_reference_lists_the_stages(ref, words):
+    data = _staged(rock_scene_dict(), "bolt")
+    data["bolts"][0]["stage"] = ref
+    with pytest.raises(SceneError) as info:
+        parse_scene(data)
+    assert info.value.path == "bolts.0.stage"
+    assert words in str(info.value)
+
+
+@pytest.mark.parametrize("section", ["bolts", "supports", "excavations"])
+def test_stage_that_never_comes_is_refused(section):
+    # No [[stages]] at all: a stage reference names a stage that never comes.
+    data = rock_scene_dict()
+    del data["stages"]
+    data["excavations"][1].pop("stage")
+    data["bolts"][0].pop("stage")
+    data[section][-1]["stage"] = 2
+    with pytest.raises(SceneError) as info:
+        parse_scene(data)
+    assert info.value.path == f"{section}.{len(data[section]) - 1}.stage"
+    assert "never comes, the scene has no [[stages]]" in str(info.value)
+
+
+def test_trace_angle_closed_forms():
+    from jaxdem.scene import trace_angle
+
+    # Dipping 35 deg towards +x ("right"): the trace descends with x, -35 deg (= 145 deg).
+    assert trace_angle(35.0, "right") == pytest.approx(-35.0, abs=1e-12)
+    assert trace_angle(35.0, "left") == pytest.approx(35.0, abs=1e-12)
+    # Azimuths: section +x towards east (90); dip direction east = "right", west = "left".
+    assert trace_angle(35.0, 90.0, section_azimuth=90.0) == pytest.approx(-35.0, abs=1e-12)
+    assert trace_angle(35.0, 270.0, section_azimuth=90.0) == pytest.approx(35.0, abs=1e-12)
+    # 60 deg off the section: apparent dip tan(a) = tan 35 cos 60.
+    a = math.degrees(math.atan(math.tan(math.radians(35.0)) * 0.5))
+    assert trace_angle(35.0, 150.0, section_azimuth=90.0) == pytest.approx(-a, abs=1e-12)
+    # Striking along the section: a horizontal trace. Vertical: a vertical trace.
+    assert trace_angle(35.0, 0.0, section_azimuth=90.0) == pytest.approx(0.0, abs=1e-12)
+    assert trace_angle(90.0, "right") == 90.0
+
+
+def test_geological_dip_gives_the_same_set_as_the_trace_angle():
+    data = rock_scene_dict()
+    data["joints"]["set1"] = {"kn": 1e6, "ks": 1e5, "friction_deg": 25.0, "dip": 35.0,
+                              "dip_direction": "right", "spacing": 2.0}
+    scene = parse_scene(data)
+    assert scene.joints["set1"].dip_deg == pytest.approx(-35.0)
+    data["scene"]["section_azimuth"] = 45.0
+    data["joints"]["set1"]["dip_direction"] = 225.0  # towards -x
+    assert parse_scene(data).joints["set1"].dip_deg == pytest.approx(35.0)
+
+
+@pytest.mark.parametrize(("change", "path", "words"), [
+    ({"dip": 35.0, "dip_direction": "right", "dip_deg": 10.0}, "joints.set1.dip",
+     "either dip_deg"),
+    ({"dip": 35.0}, "joints.set1.dip_direction", "required with dip"),
+    ({"dip_direction": "left"}, "joints.set1.dip", "required with dip_direction"),
+    ({"dip": 95.0, "dip_direction": "left"}, "joints.set1.dip", "must be in [0, 90]"),
+    ({"dip": 35.0, "dip_direction": "up"}, "joints.set1.dip_direction", "'left', 'right'"),
+    ({"dip": 35.0, "dip_direction": 120.0}, "scene.section_azimuth", "required with"),
+    ({"dip": 35.0, "dip_direction": 400.0}, "joints.set1.dip_direction", "[0, 360]"),
+])
+def test_geological_dip_refusals(change, path, words):
+    data = rock_scene_dict()
+    joint = {"kn": 1e6, "ks": 1e5, "friction_deg": 25.0, "spacing": 2.0}
+    joint.update(change)
+    data["joints"]["set1"] = joint
+    with pytest.raises(SceneError) as info:
+        parse_scene(data)
+    assert info.value.path == path
+    assert words in str(info.value)
+
+
+def test_vertical_joint_in_the_section_plane_is_refused():
+    data = rock_scene_dict()
+    data["scene"]["section_azimuth"] = 90.0
+    data["joints"]["set1"] = {"kn": 1e6, "ks": 1e5, "friction_deg": 25.0, "spacing": 2.0,
+                              "dip": 90.0, "dip_direction": 0.0}
+    with pytest.raises(SceneError, match=r"^joints\.set1\.dip_direction: .*section plane"):
+        parse_scene(data)
+
+
+def test_rounded_coordinates_overlap_within_tolerance_is_accepted():
+    # The issue's case: coordinates rounded to 6 decimals make neighbours overlap by
+    # about 1e-6 m; that is below OVERLAP_TOLERANCE (1e-5) of a 1 m block: accepted.
+    from jaxdem.scene import OVERLAP_TOLERANCE, overlap_depth
+
+    data = valid_scene_dict()
+    data["blocks"][2]["vertices"] = [[1, 1.999999], [2, 1.999999], [2, 3], [1, 3]]
+    scene = parse_scene(data)
+    area, depth = overlap_depth(scene.blocks[1].vertices, scene.blocks[2].vertices)
+    assert area == pytest.approx(1e-6, rel=1e-6)
+    assert depth == pytest.approx(2e-6 / 2.000002, rel=1e-6)
+    assert depth < OVERLAP_TOLERANCE * 1.0
+    # Twenty times deeper (2e-5 m > 1e-5 m): refused, with the tolerance stated.
+    data["blocks"][2]["vertices"] = [[1, 1.99998], [2, 1.99998], [2, 3], [1, 3]]
+    with pytest.raises(SceneError) as info:
+        parse_scene(data)
+    assert info.value.path == "blocks.2"
+    assert "1e-05 of the smaller block's size (1e-05 m) is accepted" in str(info.value)
