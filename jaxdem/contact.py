@@ -250,7 +250,11 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ey, cy, not_dup):
     # length: no spring.
     active = near & (share > 0)
     own_edge = jnp.where(po, k[None, :], jnp.where(pi, prev, -1))
-    h_x = jnp.maximum(jnp.sum((cx[:, None, :] - q) * n, axis=-1), 0.0)
+    # Each centroid's distance to its own side of the contact: X's to the line through
+    # its vertex, Y's to its face. Measured both to Y's face, an overlap shortened X's h
+    # (and stiffened its spring) but not Y's, and a contact seen from both blocks
+    # (coincident corners) got two different springs.
+    h_x = jnp.maximum(jnp.sum((cx[:, None, :] - xv) * n, axis=-1), 0.0)
     h_y = jnp.maximum(jnp.sum((q - cy[:, None, :]) * n, axis=-1), 0.0)
     return dict(active=active, gap=gap, point=xv, normal=n, tangent=t, edge=e,
                 share=share, h_x=h_x, h_y=h_y, own_edge=own_edge,
@@ -329,7 +333,7 @@ def remap_history(state: State, new_pairs: jax.Array, n_blocks: int):
     """Carry each slot's history (forces, failure, face) to the new pair list.
 
     Slots are matched by their stable key (pair, side, vertex). Returns the old
-    ``fs``, ``fn0``, ``failed``, ``edge``, ``present`` and ``cstate`` arrays laid out
+    ``fs``, ``fn``, ``fn0``, ``failed``, ``edge``, ``present`` and ``cstate`` arrays laid out
     along ``new_pairs`` (empty where the pair is new).
     """
     N1 = n_blocks + 1
@@ -343,7 +347,8 @@ def remap_history(state: State, new_pairs: jax.Array, n_blocks: int):
     pick = lambda x, empty: jnp.where(  # noqa: E731
         hit[:, None, None], x[src], jnp.asarray(empty, x.dtype))
     return dict(
-        fs=pick(state.fs, 0), fn0=pick(state.fn0, 0), failed=pick(state.failed, False),
+        fs=pick(state.fs, 0), fn=pick(state.fn, 0), fn0=pick(state.fn0, 0),
+        failed=pick(state.failed, False),
         edge=pick(state.edge, -1),
         present=pick(state.present, False), cstate=pick(state.cstate, 0),
     )

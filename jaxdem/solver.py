@@ -386,29 +386,6 @@ def _block_scale(model: Model, sub: _Sub, ev=None):
     return s
 
 
-def _roundoff_floor(model: Model, sub: _Sub):
-    """(N,) smallest residual (kN/m) each block can be balanced to in this dtype.
-
-    A spring's force is k x gap and a gap is resolved to eps x |coordinates| at
-    best, so a block's residual cannot fall below about eps |x| sum k over its
-    springs (and bolts). Asking for less stalls Newton on round-off, which
-    then reads as a mechanism that does not exist (a key block at rest, pushed
-    by a gap of -2e-16 m, was moved 59 mm).
-    """
-    N = model.n_blocks
-    eps = jnp.finfo(sub.load.dtype).eps
-    geo = sub.geo
-    reach = jnp.max(jnp.abs(geo["point"]), axis=1) + model.radius[geo["a"]]
-    k = jnp.where(geo["active"], sub.prop["kn"] + sub.prop["ks"], 0.0) * reach
-    r = jax.ops.segment_sum(k, geo["a"], N) + jax.ops.segment_sum(k, geo["b"], N)
-    if model.n_bolts:
-        bolt = sub.bolt
-        kb = jnp.where(bolt["active"], model.bolt_k, 0.0) * (
-            jnp.linalg.norm(bolt["d0"], axis=1) + model.radius[bolt["a"]])
-        r = r + jax.ops.segment_sum(kb, bolt["a"], N) + jax.ops.segment_sum(kb, bolt["b"], N)
-    return 4.0 * eps * r
-
-
 def _stiffness_terms(model: Model, sub: _Sub, ev, consistent):
     """The iteration matrix K_t = sum_m k_m B_m B_m^T as rank-one terms (a, b, B, k).
 
@@ -760,9 +737,6 @@ def _newton(model: Model, sub: _Sub, st0):
     s_slot = jnp.minimum(jnp.where(sub.free, s0, jnp.inf)[sub.geo["a"]],
                          jnp.where(sub.free, s0, jnp.inf)[sub.geo["b"]])
     band = 0.1 * model.tol * jnp.where(jnp.isfinite(s_slot), s_slot, biggest)
-    # Nor below what round-off in the positions leaves of it: each spring's force is
-    # k x gap, and a gap is resolved to eps x |coordinates| at best.
-    r_floor = _roundoff_floor(model, sub)
     zeros_s = jnp.zeros(S, jnp.int32)
     # A small block moves at most a quarter of its radius per sub-step.
     step = jnp.minimum(model.step_length, 0.25 * model.radius)
@@ -774,7 +748,7 @@ def _newton(model: Model, sub: _Sub, st0):
         ev = _evaluate(model, sub, c["du"], c["frozen"], c["frozen_state"], c["st"], band)
         changed = (ev["state"] != c["st"]) & sub.geo["active"]
         scale_b = jnp.maximum(s0, _block_scale(model, sub, ev))
-        tol = jnp.maximum(model.tol * scale_b, r_floor)
+        tol = model.tol * scale_b
         # Largest residual of a free block relative to its own tolerance.
         rnorm = jnp.max(jnp.where(sub.free, _block_residual(model, ev["R"]) / tol, 0.0))
         # Frozen slots only shape the path: the answer must balance every
@@ -968,6 +942,24 @@ def bolt_geometry(model: Model, state: State):
     return dict(a=j, b=i, point_a=p2, point_b=p1, e=e)
 
 
+def _snap_gaps(geo: dict, carried) -> dict:
+    """Round-off gaps of springs that carry nothing set to zero (values only).
+
+    A gap is a difference of coordinates, resolved to eps |x| at best: two faces
+    that touch give gaps of +-1e-16 m, and springs that push blocks apart with
+    k x 1e-16 m. A free block pushed by such forces (a key block at rest between
+    its joints, with no force yet) slid on them at round-off scale, the slip
+    iteration stalled, and the stall was followed as a mechanism: the block was
+    moved 59 mm. A spring that has carried a force (``carried``, kN/m: its
+    committed normal and shear forces) keeps its gap, however small: its force
+    is its history (in float32 a compression of a few eps |x| is a real one). The derivatives of the gaps are kept (jaxdem.differentiable).
+    """
+    eps = jnp.finfo(geo["gap"].dtype).eps
+    resolution = 8.0 * eps * jnp.max(jnp.abs(geo["point"]), axis=1)
+    small = (jnp.abs(geo["gap"]) <= resolution) & (carried == 0)
+    return dict(geo, gap=geo["gap"] - jax.lax.stop_gradient(jnp.where(small, geo["gap"], 0.0)))
+
+
 def _prepare(model: Model, state: State, loads: Loads):
     """Detect contacts at the current geometry and carry their history: a sub-step's data.
 
@@ -983,6 +975,9 @@ def _prepare(model: Model, state: State, loads: Loads):
     geo = narrow_phase(mdl, state.verts, state.centroid, pairs)
     prop = slot_properties(mdl, geo)
     flat = lambda x: x.reshape(-1)  # noqa: E731
+    carried = jnp.where(flat(hist["present"]), jnp.abs(flat(hist["fn"])) + jnp.abs(flat(hist["fs"])),
+                        0.0)
+    geo = _snap_gaps(geo, carried)
     same = flat(hist["present"]) & (flat(hist["edge"]) == geo["edge"]) & geo["active"]
     failed = jnp.where(same, flat(hist["failed"]), geo["gap"] > model.touch_tol)
     fs_old = jnp.where(same, flat(hist["fs"]), 0.0)

@@ -52,11 +52,23 @@ def _slots(blocks, **solver):
     return {k: np.asarray(v)[act] for k, v in geo.items()}, model
 
 
+def _ends(g, decimals=9):
+    """{contact point: summed share (m)}: a point where both blocks have a corner is a
+    slot on each side, with half the share each (order-independent)."""
+    out = {}
+    for p, s in zip(np.round(g["point"], decimals), g["share"], strict=True):
+        out[tuple(p)] = out.get(tuple(p), 0.0) + float(s)
+    return out
+
+
 def test_face_gives_two_points_sharing_the_face_length():
     g, _ = _slots([_square(0, 0, 2, 1), _square(0, 1, 2, 1)])
-    assert len(g["gap"]) == 2
-    np.testing.assert_allclose(np.sort(g["point"][:, 0]), [0.0, 2.0], atol=1e-12)
-    np.testing.assert_allclose(g["share"], [1.0, 1.0])  # Le = 2 m, half each
+    # The corners coincide: each end is found from both blocks, half the share each.
+    assert len(g["gap"]) == 4
+    np.testing.assert_allclose(g["share"], 0.5)
+    ends = _ends(g)
+    assert sorted(ends) == [(0.0, 1.0), (2.0, 1.0)]
+    np.testing.assert_allclose(list(ends.values()), [1.0, 1.0])  # Le = 2 m, half each
     np.testing.assert_allclose(np.abs(g["normal"][:, 1]), 1.0)
     np.testing.assert_allclose(g["gap"], 0.0, atol=1e-12)
     # Distances from the contact line to both centroids (eqs. 6-7).
@@ -89,8 +101,10 @@ def test_blocks_beyond_the_margin_have_no_contact():
 
 def test_gap_within_the_margin_is_an_open_slot_with_positive_gap():
     g, _ = _slots([_square(0, 0), _square(0, 1.05)], step_length=0.05)
-    assert len(g["gap"]) == 2
+    # Each end seen from both blocks (corners 5 cm apart), half the share each.
+    assert len(g["gap"]) == 4
     np.testing.assert_allclose(g["gap"], 0.05, rtol=1e-12)
+    np.testing.assert_allclose(g["share"], 0.25)
 
 
 def test_overlapping_blocks_have_negative_gap_on_the_right_face():
@@ -102,15 +116,17 @@ def test_overlapping_blocks_have_negative_gap_on_the_right_face():
     geo = narrow_phase(model, verts, state.centroid.at[1, 1].add(-0.001), pairs)
     act = np.asarray(geo["active"])
     g = {k: np.asarray(v)[act] for k, v in geo.items()}
-    assert len(g["gap"]) == 2
+    # Each end is found from both blocks (their corners 1 mm apart): half the share each.
+    assert len(g["gap"]) == 4
     np.testing.assert_allclose(g["gap"], -0.001, rtol=1e-9)
     np.testing.assert_allclose(np.abs(g["normal"][:, 1]), 1.0)
-    np.testing.assert_allclose(g["share"], 0.5)
+    np.testing.assert_allclose(g["share"], 0.25)
+    np.testing.assert_allclose(sorted(_ends(g, 2).values()), [0.5, 0.5])
 
 
 def test_side_by_side_blocks_touch_on_the_vertical_face():
     g, _ = _slots([_square(0, 0), _square(1, 0)])
-    assert len(g["gap"]) == 2
+    assert len(g["gap"]) == 4 and len(_ends(g)) == 2
     np.testing.assert_allclose(np.abs(g["normal"][:, 0]), 1.0)
 
 
