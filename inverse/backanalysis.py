@@ -767,9 +767,11 @@ def _run_adam(objective: _Objective, z0: np.ndarray, max_iterations: int, tolera
 LM_DAMPING = 1.0e-3
 """Starting Levenberg-Marquardt damping (relative to the diagonal of J^T J); divided by
 3 after a step that lowers the misfit, multiplied by 10 after one that does not."""
-LM_MAX_STEP = 0.5
-"""Largest Levenberg-Marquardt step of one parameter, as a fraction of its (log-)range: a
-trust region, so that a first step from far away cannot jump from bound to bound."""
+LM_MAX_STEP = 0.125
+"""Largest Levenberg-Marquardt step of one parameter, as a fraction of its (log-)range (a
+factor 3.2 within the default bounds): a trust region, so that a step from far away
+cannot jump from bound to bound, nor try a point where the model is a mechanism (whose
+solve may take many times as long)."""
 U_EDGE = 1.0e-15
 """A Gauss-Newton estimate on a bound is handed back as z = logit(U_EDGE) (or of 1 - U_EDGE)."""
 
