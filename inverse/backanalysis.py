@@ -101,7 +101,7 @@ again for points it has seen, and the final analysis asks for the accepted one."
 
 COMPONENTS = ("ux", "uy")
 """Components of a point monitor's displacement [ux, uy] (m) that can be observed."""
-OPTIMIZERS = ("lbfgs", "adam", "gauss-newton")
+OPTIMIZERS = ("gauss-newton", "lbfgs", "adam")
 
 # Statuses of a fit; ``BackAnalysis.converged`` is True for the first only.
 CONVERGED = "converged"
@@ -380,7 +380,8 @@ class _Transform:
     def theta(self, z: np.ndarray) -> np.ndarray:
         a, b = self._ends
         t = a + (b - a) * self.fraction(z)
-        return np.where(self.log, np.exp(t), t)
+        # Clipped: exp(log hi) may round a hair above hi.
+        return np.clip(np.where(self.log, np.exp(t), t), self.lo, self.hi)
 
     def dtheta_dz(self, z: np.ndarray) -> np.ndarray:
         a, b = self._ends
@@ -482,7 +483,9 @@ class _Objective:
     ``CACHE_SIZE`` points are remembered, so a value asked where the Jacobian was just
     computed costs nothing. A point without equilibrium (NaN) has misfit +inf and
     a zero gradient: optax's line search reads inf as "outside the domain" and steps
-    back.
+    back. So has a point whose values are finite but whose derivatives are not ("no
+    derivative": the held-state tangent could not be factorised, counted as
+    ``no_derivative``), and one whose solve raised (the reason kept in ``failures``).
     """
 
     def __init__(self, model: Callable, transform: _Transform, observed: np.ndarray,
@@ -490,7 +493,9 @@ class _Objective:
         self.transform = transform
         self.observed = observed
         self.std = std
-        self.evaluations = {"forward": 0, "gradient": 0, "no_equilibrium": 0}
+        self.evaluations = {"forward": 0, "gradient": 0, "no_equilibrium": 0,
+                            "no_derivative": 0}
+        self.failures: list[str] = []  # solves that raised: read as no equilibrium
         self._values = jax.jit(model)
 
         def both(theta):
@@ -511,15 +516,27 @@ class _Objective:
         # The optimiser loop runs under jax.disable_jit (see _run_lbfgs); the model is
         # compiled and run as usual.
         with jax.disable_jit(False):
-            if derivatives:
-                jac, y = self._jacobian(jnp.asarray(theta))
-                entry = (np.asarray(y, dtype=np.float64), np.asarray(jac, dtype=np.float64))
-                self.evaluations["gradient"] += 1
-            else:
-                entry = (np.asarray(self._values(jnp.asarray(theta)), dtype=np.float64), None)
-                self.evaluations["forward"] += 1
-        if not _finite_entry(entry):
+            try:
+                if derivatives:
+                    jac, y = self._jacobian(jnp.asarray(theta))
+                    entry = (np.asarray(y, dtype=np.float64), np.asarray(jac, dtype=np.float64))
+                else:
+                    entry = (np.asarray(self._values(jnp.asarray(theta)), dtype=np.float64),
+                             None)
+            except SceneError:
+                raise
+            except Exception as err:  # noqa: BLE001 - a solve that fails is a point to step back from
+                entry = (np.full(self.observed.shape, np.nan),
+                         np.full(self.observed.shape + theta.shape, np.nan)
+                         if derivatives else None)
+                lines = str(err).strip().splitlines() or [""]
+                self.failures.append(f"at theta = {theta.tolist()}: {type(err).__name__}: "
+                                     f"{lines[-1]}")
+            self.evaluations["gradient" if derivatives else "forward"] += 1
+        if not np.all(np.isfinite(entry[0])):
             self.evaluations["no_equilibrium"] += 1
+        elif not _finite_entry(entry):
+            self.evaluations["no_derivative"] += 1
         self._cache[key] = entry
         while len(self._cache) > CACHE_SIZE:
             self._cache.popitem(last=False)
@@ -750,57 +767,102 @@ def _run_adam(objective: _Objective, z0: np.ndarray, max_iterations: int, tolera
 LM_DAMPING = 1.0e-3
 """Starting Levenberg-Marquardt damping (relative to the diagonal of J^T J); divided by
 3 after a step that lowers the misfit, multiplied by 10 after one that does not."""
+LM_MAX_STEP = 0.125
+"""Largest Levenberg-Marquardt step of one parameter, as a fraction of its (log-)range (a
+factor 3.2 within the default bounds): a trust region, so that a step from far away
+cannot jump from bound to bound, nor try a point where the model is a mechanism (whose
+solve may take many times as long)."""
+U_EDGE = 1.0e-15
+"""A Gauss-Newton estimate on a bound is handed back as z = logit(U_EDGE) (or of 1 - U_EDGE)."""
 
 
 def _run_gauss_newton(objective: _Objective, z0: np.ndarray, max_iterations: int,
                       tolerance: float, report: Callable) -> _Run:
-    """Levenberg-Marquardt on the weighted residuals r(z) = (y - observed) / std.
+    """Projected Levenberg-Marquardt on the weighted residuals r = (y - observed) / std.
 
     Every solve gives the whole Jacobian of the observations (forward-mode
     sensitivities), so the misfit's Gauss-Newton model is free: the step solves
-    (J^T J + lambda diag(J^T J)) dz = -J^T r in z-space. Each trial point costs one
-    solve with sensitivities; a trial that does not lower the misfit (or has no
-    equilibrium) is refused and the damping raised. Not optax: the least-squares
-    structure is what makes it converge in a handful of solves.
+    (J^T J + lambda diag(J^T J)) du = -J^T r. It works in u = sigmoid(z), where each
+    parameter sits between its bounds (0-1, in log for log-scaled ones), not in z:
+    in z a step of a few units saturates the sigmoid, the gradient vanishes there and
+    the fit stops on a bound as if converged. In u a bound is a box face: the step is
+    clipped to the box (and to ``LM_MAX_STEP``), a parameter on a bound whose gradient
+    pushes outwards is held there, and convergence is read on the projected gradient.
+    Each trial point costs one solve with sensitivities; a trial that does not lower
+    the misfit (or has no equilibrium, or no derivative) is refused and the damping
+    raised. Not optax: the least-squares structure is what makes it converge in a
+    handful of solves.
     """
-    def weighted(z):
-        y, jac = objective.evaluate(objective.transform.theta(z), derivatives=True)
+    tr = objective.transform
+    a, b = tr._ends
+
+    def theta_of(u):
+        t = a + (b - a) * u
+        return np.clip(np.where(tr.log, np.exp(t), t), tr.lo, tr.hi)
+
+    def weighted(u):
+        theta = theta_of(u)
+        y, jac = objective.evaluate(theta, derivatives=True)
         if not _finite_entry((y, jac)):
             return None, None
         r = (y - objective.observed) / objective.std
-        return r, (jac / objective.std[:, None]) * objective.transform.dtheta_dz(z)
+        dtheta_du = (b - a) * np.where(tr.log, theta, 1.0)
+        return r, (jac / objective.std[:, None]) * dtheta_du
 
-    z = np.asarray(z0, dtype=np.float64)
-    r, Jz = weighted(z)
+    def z_of(u):
+        u = np.clip(u, U_EDGE, 1.0 - U_EDGE)
+        return np.log(u) - np.log1p(-u)
+
+    def held(u, g):
+        """Parameters on a bound that the gradient pushes further out."""
+        return ((u <= 0.0) & (g > 0.0)) | ((u >= 1.0) & (g < 0.0))
+
+    def projected(u, g):
+        return np.where(held(u, g), 0.0, g)
+
+    u = tr.fraction(np.asarray(z0, dtype=np.float64))
+    r, Ju = weighted(u)
     if r is None:
-        report(0, z, math.inf, np.zeros_like(z))
-        return _Run(z, [math.inf], 0, NO_EQUILIBRIUM_AT_START, _NO_START)
+        report(0, z_of(u), math.inf, np.zeros_like(u))
+        return _Run(z_of(u), [math.inf], 0, NO_EQUILIBRIUM_AT_START, _NO_START)
     value = 0.5 * float(r @ r)
     history = [value]
-    report(0, z, value, Jz.T @ r)
+    report(0, z_of(u), value, Ju.T @ r * u * (1.0 - u))
     damping = LM_DAMPING
     status, message = MAX_ITERATIONS, _limit_message(max_iterations)
     k = 0
     for k in range(1, max_iterations + 1):
-        A, g = Jz.T @ Jz, Jz.T @ r
+        g = Ju.T @ r
+        free = ~held(u, g)
+        A = Ju.T @ Ju
         while True:
-            step = np.linalg.solve(A + damping * np.diag(np.maximum(np.diag(A), 1e-30)), -g)
-            r_new, J_new = weighted(z + step)
+            step = np.zeros_like(u)
+            Af = A[np.ix_(free, free)]
+            step[free] = np.linalg.solve(
+                Af + damping * np.diag(np.maximum(np.diag(Af), 1e-30)), -g[free])
+            biggest = float(np.max(np.abs(step), initial=0.0))
+            if biggest > LM_MAX_STEP:
+                step *= LM_MAX_STEP / biggest
+            u_new = np.clip(u + step, 0.0, 1.0)
+            if np.array_equal(u_new, u):
+                return _Run(z_of(u), history, k - 1, LINE_SEARCH_FAILED, _STUCK)
+            r_new, J_new = weighted(u_new)
             if r_new is not None and 0.5 * float(r_new @ r_new) < value:
                 break
             damping *= 10.0
             if damping > 1e12:
-                return _Run(z, history, k - 1, LINE_SEARCH_FAILED, _STUCK)
-        previous, z, r, Jz = value, z + step, r_new, J_new
+                return _Run(z_of(u), history, k - 1, LINE_SEARCH_FAILED, _STUCK)
+        previous, u, r, Ju = value, u_new, r_new, J_new
         value = 0.5 * float(r @ r)
         damping = max(damping / 3.0, 1e-12)
         history.append(value)
-        report(k, z, value, Jz.T @ r)
-        done = _settled(previous, value, float(np.linalg.norm(Jz.T @ r)), tolerance)
+        g = Ju.T @ r
+        report(k, z_of(u), value, g * u * (1.0 - u))
+        done = _settled(previous, value, float(np.linalg.norm(projected(u, g))), tolerance)
         if done:
-            status, message = CONVERGED, done
+            status, message = CONVERGED, done.replace("in z-space", "(projected, in u-space)")
             break
-    return _Run(z, history, k, status, message)
+    return _Run(z_of(u), history, k, status, message)
 
 
 _NO_START = ("the model has no equilibrium at the starting parameters (the forward solve "
@@ -841,13 +903,14 @@ class BackAnalysis:
         onto a point without equilibrium).
       iterations: iterations done.
       evaluations: solves made: ``forward`` (values only), ``gradient`` (values and
-        Jacobian from one jacfwd solve), ``no_equilibrium`` (of those, how many gave NaN).
+        Jacobian from one jacfwd solve), ``no_equilibrium`` (of those, how many gave NaN
+        values, or raised) and ``no_derivative`` (finite values, NaN derivatives).
       converged: True when the stopping rule was met.
       status: "converged", "max_iterations", "line_search_failed" or
         "no_equilibrium_at_start".
       message: what happened, in words.
       warnings: sentences about identifiability, bounds and the quality of the fit.
-      optimizer: "lbfgs" or "adam".
+      optimizer: "gauss-newton", "lbfgs" or "adam".
     """
 
     paths: list[str]
@@ -929,7 +992,7 @@ def back_analyse(
     fit: Sequence[str],
     *,
     bounds: Mapping[str, tuple[float, float]] | None = None,
-    optimizer: str = "lbfgs",
+    optimizer: str = "gauss-newton",
     max_iterations: int = 50,
     tolerance: float = DEFAULT_TOLERANCE,
     learning_rate: float = ADAM_LEARNING_RATE,
@@ -965,8 +1028,9 @@ def back_analyse(
       fit: dotted paths of the parameters to fit (``"joints.set1.kn"``).
       bounds: {path: (lo, hi)} in file units; default [theta0 / 100, theta0 * 100]
         for a positive theta0, required otherwise.
-      optimizer: "lbfgs" (optax L-BFGS, zoom line search), "adam" (optax), or
-        "gauss-newton" (Levenberg-Marquardt on the observations' Jacobian: fewest solves).
+      optimizer: "gauss-newton" (the default: Levenberg-Marquardt on the observations'
+        Jacobian, fewest solves and robust from any start within the bounds), "lbfgs"
+        (optax L-BFGS, zoom line search) or "adam" (optax).
       max_iterations: most optimiser iterations (0: analyse the starting point).
       tolerance: of the stopping rule above.
       learning_rate: Adam's step in z-space (``ADAM_LEARNING_RATE``); unused by L-BFGS.
@@ -1072,6 +1136,13 @@ def _analyse(run: _Run, theta0: np.ndarray, objective: _Objective, transform: _T
         warnings += _bound_warnings(run.z, theta, transform, paths)
         warnings += _precision_warnings(theta, stds, identifiable, paths)
         warnings += _fit_warnings(misfit, len(observations), len(paths))
+    if objective.evaluations["no_derivative"]:
+        warnings.append(f"{objective.evaluations['no_derivative']} solves had finite values but "
+                        "no derivative (a singular held-state tangent); the optimiser stepped "
+                        "back from them")
+    if objective.failures:
+        warnings.append(f"{len(objective.failures)} solves raised and were read as points "
+                        f"without equilibrium; the first {objective.failures[0]}")
     return BackAnalysis(
         paths=list(paths),
         params=dict(zip(paths, map(float, theta), strict=True)),

@@ -10,7 +10,7 @@
     jaxdem fos SCENE.toml [--out DIR] [--intact] [--tensile] [--trials N] [--tolerance R]
            [--set PATH=VALUE ...]                               # factor of safety
     jaxdem back-analyse SCENE.toml --observed FILE.csv --fit PATH [--fit PATH ...]
-           [--bounds PATH=LO:HI ...] [--optimizer lbfgs|adam|gauss-newton] [--max-iterations N]
+           [--bounds PATH=LO:HI ...] [--optimizer gauss-newton|lbfgs|adam] [--max-iterations N]
            [--out DIR] [--set PATH=VALUE ...]                   # fit parameters to measurements
 
 Exit status: 0 when solved (stable or not: a mechanism is an answer), 2 on
@@ -20,7 +20,8 @@ values, contact capacity overflow). ``run`` writes ``result.json`` and the
 figures in every case where the solver returned, so that a failed run can be
 looked at. ``back-analyse`` exits 0 when the fit ran (converged or not, every
 parameter identifiable or not), 3 when the model has no equilibrium at the
-starting parameters; it writes ``back_analysis.json`` in every case, and the
+starting parameters (``back-analyse`` and ``sweep`` also exit 3, with one line on
+stderr, when a solve raised); it writes ``back_analysis.json`` in every case, and the
 figures when the fit ran. ``fos`` exits 0 when the factor of safety is
 bracketed (or bounded by its limits), 3 when the unstable end of the bracket
 is a trial that stopped at the iteration limit or went non-finite rather
@@ -172,21 +173,27 @@ def cmd_back_analyse(args: argparse.Namespace) -> int:
 
     from inverse import back_analyse, read_observations
     from inverse.backanalysis import NO_EQUILIBRIUM_AT_START
+    from jaxdem.scene import SceneError
     from inverse.plots import write_figures
 
     observations = read_observations(args.observed)
     print(f"{_scene_name(scene, path, overrides)}: {_scene_summary(scene)}")
     print(f"fitting {', '.join(args.fit)} to {len(observations)} observations "
           f"({args.optimizer}, at most {args.max_iterations} iterations)")
-    result = back_analyse(
-        scene,
-        observations,
-        args.fit,
-        bounds=bounds,
-        optimizer=args.optimizer,
-        max_iterations=args.max_iterations,
-        progress=_print_iteration,
-    )
+    try:
+        result = back_analyse(
+            scene,
+            observations,
+            args.fit,
+            bounds=bounds,
+            optimizer=args.optimizer,
+            max_iterations=args.max_iterations,
+            progress=_print_iteration,
+        )
+    except SceneError:
+        raise
+    except Exception as err:  # noqa: BLE001 - exit codes are 0, 2 and 3 only
+        return _failed("back-analyse", err)
     written = [_write_json(result.to_dict(), out / "back_analysis.json")]
     if result.status != NO_EQUILIBRIUM_AT_START:
         written += write_figures(result, out)
@@ -223,9 +230,16 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     print(f"sweep {how}, plus {1 + 2 * p} for the tornado; "
           + "; ".join(f"{v.path} {v.describe()}" for v in variables), flush=True)
     bar = SampleBar()
-    with bar:
-        result = sweep(scene, variables, args.samples, method=method, seed=args.seed,
-                       chunk=args.chunk, progress=bar)
+    from jaxdem.scene import SceneError
+
+    try:
+        with bar:
+            result = sweep(scene, variables, args.samples, method=method, seed=args.seed,
+                           chunk=args.chunk, progress=bar)
+    except SceneError:
+        raise
+    except Exception as err:  # noqa: BLE001 - exit codes are 0, 2 and 3 only
+        return _failed("sweep", err)
     written = [result.to_csv(out / "sweep.csv"), _write_json(result.to_dict(), out / "sweep.json")]
     if result.tornado:
         written.append(plot_tornado(result.tornado, out / "tornado.png"))
@@ -361,6 +375,13 @@ def _write_json(data: dict[str, Any], path: Path) -> Path:
     from jaxdem.results import write_json
 
     return write_json(data, path)
+
+
+def _failed(command: str, err: Exception) -> int:
+    """A solve that raised inside ``command``: one line on stderr, exit status 3."""
+    lines = str(err).strip().splitlines() or [""]
+    _error(f"{command}: the solver failed ({type(err).__name__}: {lines[-1]})")
+    return EXIT_NOT_CONVERGED
 
 
 def _error(message: str) -> None:
@@ -668,8 +689,8 @@ def _parser() -> argparse.ArgumentParser:
     back = sub.add_parser(
         "back-analyse",
         help="fit scene parameters to measured monitor values",
-        description="Fit scene parameters to measured monitor values (L-BFGS on gradients of "
-        "the monitors); report estimates, Gauss-Newton standard deviations and which "
+        description="Fit scene parameters to measured monitor values (Gauss-Newton / "
+        "Levenberg-Marquardt on the monitors' Jacobian by default); report estimates, Gauss-Newton standard deviations and which "
         "parameters the measurements determine.",
     )
     back.add_argument("scene", metavar="SCENE.toml")
@@ -694,9 +715,9 @@ def _parser() -> argparse.ArgumentParser:
         metavar="PATH=LO:HI",
         help="bounds of a fitted parameter (default theta0/100 to theta0*100 when positive)",
     )
-    back.add_argument("--optimizer", choices=("lbfgs", "adam", "gauss-newton"),
-                      default="lbfgs", help="lbfgs (default), adam or gauss-newton "
-                      "(Levenberg-Marquardt: fewest solves)")
+    back.add_argument("--optimizer", choices=("gauss-newton", "lbfgs", "adam"),
+                      default="gauss-newton", help="gauss-newton (default: Levenberg-Marquardt "
+                      "on the monitors' Jacobian, fewest solves), lbfgs or adam")
     back.add_argument("--max-iterations", type=int, default=50, metavar="N",
                       help="most optimiser iterations (default 50)")
     back.add_argument(

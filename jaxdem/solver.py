@@ -537,24 +537,14 @@ def _solve_dense(model: Model, sub: _Sub, terms, R):
     return jnp.linalg.solve(K, R.reshape(-1)).reshape(R.shape)
 
 
-def _host_sparse_solve(a, b, L, Rt, k, Kc, diag, rhs, active=True, symmetric=True):
-    """Assemble K = sum_m k_m L_m Rt_m^T + blockdiag(Kc) + diag(diag) on the host and solve.
+def _host_matrix(a, b, L, Rt, k, Kc, diag):
+    """K = sum_m k_m L_m Rt_m^T + blockdiag(Kc) + diag(diag) as a SciPy CSC matrix (host arrays).
 
     Only terms with k != 0 enter, so the padded slot list costs nothing.
-    The factorisation is SciPy's SuperLU (minimum-degree ordering of K + K^T).
-    ``rhs`` is (n,) or (n, p). CPU only: on a GPU the matrix would travel to
-    the host (use "cg" there). ``active`` False returns zeros at once: a batch
-    member whose iteration has finished (vmap runs the loop body for every
-    member until the last one is done) costs no factorisation.
     """
     import scipy.sparse
-    import scipy.sparse.linalg
 
-    if not bool(np.asarray(active)):
-        return np.zeros_like(np.asarray(rhs))
-    symmetric = bool(np.asarray(symmetric))
-    a, b, L, Rt, k, Kc, diag, rhs = (np.asarray(x) for x in (a, b, L, Rt, k, Kc, diag, rhs))
-    n = rhs.shape[0]
+    n = diag.shape[0]
     D = L.shape[1] // 2
     on = k != 0
     a, b, L, Rt, k = a[on], b[on], L[on], Rt[on], k[on]
@@ -570,8 +560,27 @@ def _host_sparse_solve(a, b, L, Rt, k, Kc, diag, rhs, active=True, symmetric=Tru
     rows.append(np.arange(n))
     cols.append(np.arange(n))
     vals.append(diag)
-    K = scipy.sparse.csc_matrix(
+    return scipy.sparse.csc_matrix(
         (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
+
+
+def _host_sparse_solve(a, b, L, Rt, k, Kc, diag, rhs, active=True, symmetric=True):
+    """Assemble K = sum_m k_m L_m Rt_m^T + blockdiag(Kc) + diag(diag) on the host and solve.
+
+    Only terms with k != 0 enter, so the padded slot list costs nothing.
+    The factorisation is SciPy's SuperLU (minimum-degree ordering of K + K^T).
+    ``rhs`` is (n,) or (n, p). CPU only: on a GPU the matrix would travel to
+    the host (use "cg" there). ``active`` False returns zeros at once: a batch
+    member whose iteration has finished (vmap runs the loop body for every
+    member until the last one is done) costs no factorisation.
+    """
+    import scipy.sparse.linalg
+
+    if not bool(np.asarray(active)):
+        return np.zeros_like(np.asarray(rhs))
+    symmetric = bool(np.asarray(symmetric))
+    a, b, L, Rt, k, Kc, diag, rhs = (np.asarray(x) for x in (a, b, L, Rt, k, Kc, diag, rhs))
+    K = _host_matrix(a, b, L, Rt, k, Kc, diag)
     if symmetric:
         # K is symmetric positive definite: symmetric ordering, no pivoting
         # (ten times faster than SuperLU's default partial pivoting).
@@ -1301,20 +1310,65 @@ def _tangent_terms(model: Model, sub: _Sub, ev):
     return _with_slip_coupling(model, sub, ev, terms, jnp.ones((), bool))
 
 
+TANGENT_REFINEMENTS = 2
+"""Refinement steps of the sensitivity solve on its regularised factorisation (see
+:func:`_tangent_solve`): each multiplies the regularisation's error by eps / lambda."""
+
+
+def _host_tangent_solve(a, b, L, Rt, k, Kc, diag, pm, rhs):
+    """:func:`_tangent_solve` on the host: SuperLU of K + eps M, refined on K; NaN if singular."""
+    import scipy.sparse
+    import scipy.sparse.linalg
+
+    a, b, L, Rt, k, Kc, diag, pm, rhs = (np.asarray(x) for x in (a, b, L, Rt, k, Kc, diag, pm,
+                                                                  rhs))
+    K = _host_matrix(a, b, L, Rt, k, Kc, diag)
+    try:
+        lu = scipy.sparse.linalg.splu(K + scipy.sparse.diags(pm, format="csc"),
+                                      permc_spec="MMD_AT_PLUS_A")
+    except RuntimeError:  # "Factor is exactly singular": no derivative here
+        return np.full_like(rhs, np.nan)
+    x = lu.solve(rhs)
+    for _ in range(TANGENT_REFINEMENTS):
+        x = x + lu.solve(rhs - K @ x)
+    return np.where(np.all(np.isfinite(x)), x, np.nan).astype(rhs.dtype)
+
+
 def _tangent_solve(model: Model, sub: _Sub, terms, rhs):
-    """K^-1 rhs for p right-hand sides (p, N, D), K the exact (possibly unsymmetric) tangent."""
+    """K^-1 rhs for p right-hand sides (p, N, D), K the exact (possibly unsymmetric) tangent.
+
+    K is singular where a free block has a neutral direction in the held states
+    (its contacts all open or slipping, or a rotation about its one contact
+    point). So K + eps M is factorised, eps M the forward solve's pseudo-mass
+    (``model.pseudo_mass``), and the answer refined on K itself
+    (:data:`TANGENT_REFINEMENTS` steps, x += (K + eps M)^-1 (rhs - K x)): where K
+    is regular the pseudo-mass's error, a relative eps / lambda per step, is
+    gone (1e-6 -> 1e-18), and along a neutral direction, which no load
+    excites, the derivative stays zero (the minimum-norm answer). Where the
+    rhs does push along a neutral direction the derivative there is bounded by
+    (1 + refinements) rhs / eps, as the forward solve's own step is.
+    A factorisation that is still singular, or any non-finite entry, gives NaN
+    everywhere: "no derivative at this point", which the back-analysis reads
+    as a step to take back.
+    """
     p = rhs.shape[0]
     N, D = model.n_blocks, model.ndof
     a, b, L, Rt, k = terms
-    diag = jnp.where(jnp.repeat(sub.free, D), 0.0, 1.0).astype(rhs.dtype)
+    free = jnp.repeat(sub.free, D)
+    diag = jnp.where(free, 0.0, 1.0).astype(rhs.dtype)
+    pm = jnp.where(free, model.pseudo_mass.reshape(-1), 0.0).astype(rhs.dtype)
     B = rhs.reshape(p, N * D).T
     if model.linear_solver == "dense":
-        x = jnp.linalg.solve(_assemble_dense(model, sub, a, b, L, Rt, k, diag), B)
+        K = _assemble_dense(model, sub, a, b, L, Rt, k, diag)
+        lu = jax.scipy.linalg.lu_factor(K + jnp.diag(pm))
+        x = jax.scipy.linalg.lu_solve(lu, B)
+        for _ in range(TANGENT_REFINEMENTS):
+            x = x + jax.scipy.linalg.lu_solve(lu, B - K @ x)
+        x = jnp.where(jnp.all(jnp.isfinite(x)), x, jnp.nan)
     else:
         Kc = sub.Kc if sub.Kc is not None else jnp.zeros((0, D, D), rhs.dtype)
-        x = jax.pure_callback(functools.partial(_host_sparse_solve, symmetric=False),
-                              jax.ShapeDtypeStruct(B.shape, B.dtype), a, b, L, Rt, k, Kc, diag,
-                              B, True, vmap_method="sequential")
+        x = jax.pure_callback(_host_tangent_solve, jax.ShapeDtypeStruct(B.shape, B.dtype),
+                              a, b, L, Rt, k, Kc, diag, pm, B, vmap_method="sequential")
     return x.T.reshape(rhs.shape)
 
 

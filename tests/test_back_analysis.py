@@ -84,3 +84,21 @@ def test_the_gauss_newton_jacobian_is_that_of_the_solver(measured):
     theta = jnp.array([fit.params[p] for p in TRUE])
     y = f(theta)
     assert float(y["span"]) == pytest.approx(float(fit.fitted[0]), rel=1e-9)
+
+
+def test_the_default_optimiser_reaches_the_truth_from_random_starts(measured):
+    # Issue 17: from any start within the default bounds (a factor 100 either side of
+    # the truth), noise-free. Three starts here; benchmarks/robust_back_analysis.py
+    # runs twenty on three scenes.
+    paths = list(TRUE)
+    truth = np.array([TRUE[p] for p in paths])
+    bounds = {p: (t / 100.0, t * 100.0) for p, t in TRUE.items()}
+    f, _ = jaxdem.differentiable(_scene(TRUE), paths)
+    u = np.random.default_rng(17).random((3, len(paths)))
+    for start in truth * 100.0 ** (2.0 * u - 1.0):
+        fit = back_analyse(_scene(TRUE), _observations(measured), fit=paths, bounds=bounds,
+                           forward=(f, start))
+        assert fit.optimizer == "gauss-newton"
+        assert fit.converged, (start, fit.message)
+        for path, true in TRUE.items():
+            assert fit.params[path] == pytest.approx(true, rel=0.01), start

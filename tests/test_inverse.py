@@ -221,7 +221,7 @@ def test_adam_reaches_the_lbfgs_estimate(scene):
     # Adam moves at most ~learning_rate in z per iteration and needs a few hundred
     # iterations; it stops within ~0.1 % of the optimum here, so 1 % is the tolerance.
     observed = exact_observations(tunnel, TRUE)
-    lbfgs = fit(scene, observed)
+    lbfgs = fit(scene, observed, optimizer="lbfgs")
     adam = fit(scene, observed, optimizer="adam", max_iterations=1000)
     assert adam.converged, adam.message
     assert adam.optimizer == "adam"
@@ -232,8 +232,8 @@ def test_adam_reaches_the_lbfgs_estimate(scene):
 
 def test_gauss_newton_reaches_the_lbfgs_estimate_in_fewer_solves(scene):
     observed = exact_observations(tunnel, TRUE)
-    lbfgs = fit(scene, observed)
-    gn = fit(scene, observed, optimizer="gauss-newton")
+    lbfgs = fit(scene, observed, optimizer="lbfgs")
+    gn = fit(scene, observed)  # the default
     assert gn.converged, gn.message
     for path in (KN, KS):
         assert gn.params[path] == pytest.approx(lbfgs.params[path], rel=1e-4)
@@ -339,7 +339,8 @@ def test_line_search_backs_off_from_points_without_equilibrium(scene):
     # No equilibrium for kn < 1.6e6, just below the truth (2e6); from kn = 2e7 the first
     # steps overshoot into that region, and the fit must still get there.
     f = mechanism_below(1.6e6)
-    result = fit(scene, exact_observations(tunnel, TRUE), f=f, start=[2e7, 1e6])
+    result = fit(scene, exact_observations(tunnel, TRUE), f=f, start=[2e7, 1e6],
+                 optimizer="lbfgs")
     assert result.evaluations["no_equilibrium"] > 0
     assert result.converged, result.message
     assert np.all(np.abs(relative_error(result, TRUE)) < 0.01)
