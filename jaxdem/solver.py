@@ -1391,6 +1391,11 @@ MAX_COMPILED = 16
 """Compiled increments kept in memory (least recently used dropped first)."""
 
 
+COMPILE_TIMES = {"lower_s": 0.0, "compile_s": 0.0}
+"""Time spent in :func:`_compiled` by this process: tracing and lowering, and XLA
+compilation (or loading from the persistent cache), s."""
+
+
 def _compiled(fn, *args):
     """``fn`` (jitted) compiled for these argument shapes and static settings; compile time (s).
 
@@ -1408,7 +1413,11 @@ def _compiled(fn, *args):
         _COMPILED.move_to_end(key)
         return _COMPILED[key], 0.0
     t0 = time.perf_counter()
-    compiled = fn.lower(*args).compile()
+    lowered = fn.lower(*args)
+    t1 = time.perf_counter()
+    compiled = lowered.compile()
+    COMPILE_TIMES["lower_s"] += t1 - t0
+    COMPILE_TIMES["compile_s"] += time.perf_counter() - t1
     _COMPILED[key] = compiled
     if len(_COMPILED) > MAX_COMPILED:
         _COMPILED.popitem(last=False)
