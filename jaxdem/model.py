@@ -36,6 +36,7 @@ from jaxdem.state import ROCK, WALL_FIXED, WALL_ROLLER, Model, State, empty_hist
 _USE_CELLS_ABOVE = 400  # blocks; below this all-pairs boxes are cheaper
 _DENSE_UP_TO = 600  # unknowns; above this sparse direct (CPU) or iterative (GPU, batches)
 _DENSE_UP_TO_ACCELERATOR = 1800  # unknowns, on a GPU or TPU (not measured here)
+_CG_UP_TO = 6000  # unknowns; a single solve on a CPU above _DENSE_UP_TO takes "cg" up to here
 BOND_PENALTY = 100.0
 """Intact bonds between deformable cells: this many times the Hamajima-Kawai spring.
 
@@ -439,7 +440,8 @@ def _bolts(scene, polys, cents, pieces, tol) -> dict:
     )
 
 
-def linear_solver_for(choice: str, unknowns: int, *, platform: str | None = None) -> str:
+def linear_solver_for(choice: str, unknowns: int, *, platform: str | None = None,
+                      batch: bool = False) -> str:
     """The linear solver of the Newton iteration: the scene's ``solver.linear_solver``.
 
     "auto" decides by size and where the solve runs (BENCHMARKS.md, "Scaling:
@@ -451,22 +453,30 @@ def linear_solver_for(choice: str, unknowns: int, *, platform: str | None = None
       ``_DENSE_UP_TO_ACCELERATOR`` (1,800).
       On a 2-core CPU SuperLU is already 1.3 times faster at 576 unknowns
       and 7 times at 1,788;
-    - above, on a CPU: "sparse" (SciPy's SuperLU on the host), 4 to 7 times
-      faster than the iterative path at 2,000 to 10,000 blocks on a 2-core CPU
-      (3 times at 600 blocks), if with 1.5 times its memory. A batch (solved
-      under ``vmap``, jaxdem.batch) too: its members' factorisations
-      run one after another and finished members are skipped; on the
-      492-block tunnel of bench_scaling.py a batch of 8 took 0.25 s a sample
-      this way against 0.44 with "cg" and 0.60 with "dense" (0.31 for a loop
-      of single solves);
-    - above, on a GPU or TPU: "cg", matrix-free preconditioned conjugate
-      gradients, jittable, memory linear in the contacts; the host callback of
-      "sparse" would copy every matrix to the host.
+    - above, for a single solve on a CPU, up to ``_CG_UP_TO`` (6,000) unknowns,
+      2,000 rigid blocks: "cg", matrix-free preconditioned conjugate gradients.
+      Its solve is slower than SuperLU's (1.1 to 4 times at 400 to 2,000 blocks),
+      but its program is cached on disk: the sparse path's host callback keeps
+      JAX from caching the increment, so every process compiled it again, 8 to
+      13 s on a 2-core CPU, more than the whole solve at these sizes
+      (BENCHMARKS.md, "Time to answer");
+    - above that, on a CPU: "sparse" (SciPy's SuperLU on the host), 4 to 7 times
+      faster than the iterative path at 2,000 to 10,000 blocks on a 2-core CPU,
+      if with 1.5 times its memory. A batch (``batch=True``, solved under
+      ``vmap``, jaxdem.batch) takes it from ``_DENSE_UP_TO`` on: its members'
+      factorisations run one after another and finished members are skipped;
+      on the 492-block tunnel of bench_scaling.py a batch of 8 took 0.25 s a
+      sample this way against 0.44 with "cg" and 0.60 with "dense" (0.31 for a
+      loop of single solves);
+    - above ``_DENSE_UP_TO_ACCELERATOR``, on a GPU or TPU: "cg", jittable,
+      memory linear in the contacts; the host callback of "sparse" would copy
+      every matrix to the host.
 
     Args:
       choice: "auto", "dense", "sparse" or "cg"; anything but "auto" is kept.
       unknowns: degrees of freedom of the rock blocks (3 or 6 per block).
       platform: JAX platform ("cpu", "gpu", "tpu"); default the default backend.
+      batch: the solve is a vmapped batch (jaxdem.batch), not a single scene.
 
     Returns:
       "dense", "sparse" or "cg".
@@ -481,7 +491,9 @@ def linear_solver_for(choice: str, unknowns: int, *, platform: str | None = None
     accelerator = platform != "cpu"
     if unknowns <= (_DENSE_UP_TO_ACCELERATOR if accelerator else _DENSE_UP_TO):
         return "dense"
-    return "cg" if accelerator else "sparse"
+    if accelerator or (not batch and unknowns <= _CG_UP_TO):
+        return "cg"
+    return "sparse"
 
 
 def _tol_floor(dtype) -> float:
