@@ -332,7 +332,8 @@ def _solve_and_report(path: Path, out: Path, overrides: dict[str, Any],
 
     print("wrote " + ", ".join(str(p) for p in written))
     _mark("end")
-    _write_phases({"timing": dict(result.timing), "increment": dict(solver.COMPILE_TIMES)})
+    _write_phases({"timing": dict(getattr(result, "timing", None) or {}),
+                   "increment": dict(getattr(solver, "COMPILE_TIMES", {}))})
     return EXIT_OK if result.status in SOLVED_STATUSES else EXIT_NOT_CONVERGED
 
 
