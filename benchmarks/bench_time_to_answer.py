@@ -24,8 +24,10 @@ jaxdem/cli.py) and ``result.json``'s timing:
 Problems (scene files written to ``benchmarks/scenes/`` by this script):
 
 - incline: a 1 m block on a 30 degree plane, joint friction 35 degrees
-  (stays). Closed form (tests/verification/test_incline.py): two point
-  springs at the ends of the 1 m face, kn, ks from eqs. 6-7; the error is the
+  (stays). Closed form (as tests/verification/test_incline.py): two point
+  springs at the ends of the 1 m face, kn, ks from eqs. 6-7, here with the
+  up-slope spring slipping (the overturning moment unloads it) and the
+  down-slope one sticking (:func:`_incline_closed_form`); the error is the
   largest relative error of the centroid's displacement along and normal to
   the slope and its rotation.
 - grid10, grid20: n x n square 1 m blocks on a fixed 1 m high base. No lateral
