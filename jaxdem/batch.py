@@ -167,6 +167,10 @@ def _prepared(scene, params: tuple):
         _PREPARED.move_to_end(key)
         return hit[1:]
     model, state, layout = model_mod.build(scene)
+    # A batch on a CPU takes SuperLU where a single solve takes CG (linear_solver_for).
+    unknowns = layout.n_rock * model.ndof
+    model = dataclasses.replace(model, linear_solver=model_mod.linear_solver_for(
+        scene.solver.linear_solver, unknowns, batch=True))
     data0 = scene_data(scene, layout)
     pmap = _ParameterMap(scene, model, layout, data0, list(params))
     values = jax.jit(jax.vmap(pmap._values))

@@ -2,8 +2,8 @@
 
 ::
 
-    jaxdem demo  [--out DIR] [--vtk]                           # bundled demo scene
-    jaxdem run   SCENE.toml [--out DIR] [--set PATH=VALUE ...] [--vtk]  # solve, write results
+    jaxdem demo  [--out DIR] [--vtk] [--no-figures]            # bundled demo scene
+    jaxdem run   SCENE.toml [--out DIR] [--set PATH=VALUE ...] [--vtk] [--no-figures]
     jaxdem check SCENE.toml [--out DIR]                         # validate, draw blocks
     jaxdem sweep SCENE.toml --vary PATH=LOW:HIGH[:log] [--vary PATH=DIST:ARGS ...] --samples N
            [--method grid|lhs|mc] [--seed S] [--chunk C] [--out DIR] [--set PATH=VALUE ...]
@@ -46,6 +46,22 @@ from collections.abc import Sequence
 from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import Any, TextIO
+
+# Wall-clock marks of a command's phases (time.time(), s), written as JSON to
+# $JAXDEM_PHASES when that is set (benchmarks/bench_time_to_answer.py reads them).
+_PHASES: dict[str, float] = {}
+
+
+def _mark(name: str) -> None:
+    import time
+
+    _PHASES[name] = time.time()
+
+
+def _write_phases(extra: dict[str, Any] | None = None) -> None:
+    target = os.environ.get("JAXDEM_PHASES")
+    if target:
+        Path(target).write_text(json.dumps({**_PHASES, **(extra or {})}))
 
 EXIT_OK = 0
 EXIT_INVALID_INPUT = 2
@@ -134,7 +150,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if not resource.is_file():
         raise InputError("the bundled demo scene jaxdem/data/demo.toml is missing")
     with resources.as_file(resource) as path:
-        return _solve_and_report(path, Path(args.out), overrides={}, vtk=args.vtk)
+        return _solve_and_report(path, Path(args.out), overrides={}, vtk=args.vtk,
+                                 figures=not args.no_figures)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -142,7 +159,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     path = Path(args.scene)
     out = Path(args.out) if args.out else Path("out") / path.stem
     overrides = _parse_overrides([item for group in args.set or [] for item in group])
-    return _solve_and_report(path, out, overrides=overrides, vtk=args.vtk)
+    return _solve_and_report(path, out, overrides=overrides, vtk=args.vtk,
+                             figures=not args.no_figures)
 
 
 def cmd_check(args: argparse.Namespace) -> int:
@@ -289,17 +307,20 @@ def cmd_fos(args: argparse.Namespace) -> int:
 
 
 def _solve_and_report(path: Path, out: Path, overrides: dict[str, Any],
-                      vtk: bool = False) -> int:
+                      vtk: bool = False, figures: bool = True) -> int:
+    _mark("start")
     scene = _load(path, overrides)
     _check_out(out)
     print(f"{_scene_name(scene, path, overrides)}: {_scene_summary(scene)}")
+    _mark("loaded")
 
     from jaxdem import solver
-    from jaxdem.plots import write_figures
 
+    _mark("imported")
     bar = ProgressBar(n_stages=_stage_count(scene))
     with bar:
         result = solver.solve(scene, progress=bar)
+    _mark("solved")
 
     data = result.to_dict()
     if overrides:
@@ -309,15 +330,24 @@ def _solve_and_report(path: Path, out: Path, overrides: dict[str, Any],
         result = dataclasses.replace(result, scene=_scene_name(scene, path, overrides))
     out.mkdir(parents=True, exist_ok=True)
     (out / "result.json").write_text(json.dumps(data, indent=2))
+    # The answer first: the summary and result.json do not wait for the figures.
+    print(_result_summary(result), flush=True)
+    _mark("answered")
     written = [out / "result.json"]
-    written += write_figures(result, out)
+    if figures:
+        from jaxdem.plots import write_figures
+
+        written += write_figures(result, out)
+    _mark("figures")
     if vtk:
         from jaxdem.vtk import write_vtk
 
         written += write_vtk(result, out)
 
-    print(_result_summary(result))
     print("wrote " + ", ".join(str(p) for p in written))
+    _mark("end")
+    _write_phases({"timing": dict(getattr(result, "timing", None) or {}),
+                   "increment": dict(getattr(solver, "COMPILE_TIMES", {}))})
     return EXIT_OK if result.status in SOLVED_STATUSES else EXIT_NOT_CONVERGED
 
 
@@ -646,6 +676,11 @@ def _add_set_option(parser: argparse.ArgumentParser, help: str) -> None:
     parser.add_argument("--set", action="append", nargs="+", metavar="PATH=VALUE", help=help)
 
 
+def _add_figures_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--no-figures", action="store_true",
+                        help="write result.json only, no figures (faster)")
+
+
 def _add_vtk_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--vtk", action="store_true",
                         help="also write blocks.vtk (polygons with displacement, stress, "
@@ -669,6 +704,7 @@ def _parser() -> argparse.ArgumentParser:
         help=f"output folder (default {DEFAULT_DEMO_OUT})",
     )
     _add_vtk_option(demo)
+    _add_figures_option(demo)
     demo.set_defaults(func=cmd_demo)
 
     run = sub.add_parser("run", help="solve a scene, write result.json and figures")
@@ -678,6 +714,7 @@ def _parser() -> argparse.ArgumentParser:
     _add_set_option(run, "override scene parameters, e.g. --set joints.set1.kn=2e6 "
                     "in_situ.k0=1.5 (repeatable)")
     _add_vtk_option(run)
+    _add_figures_option(run)
     run.set_defaults(func=cmd_run)
 
     check = sub.add_parser("check", help="validate a scene and draw its blocks")

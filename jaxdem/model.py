@@ -36,6 +36,7 @@ from jaxdem.state import ROCK, WALL_FIXED, WALL_ROLLER, Model, State, empty_hist
 _USE_CELLS_ABOVE = 400  # blocks; below this all-pairs boxes are cheaper
 _DENSE_UP_TO = 600  # unknowns; above this sparse direct (CPU) or iterative (GPU, batches)
 _DENSE_UP_TO_ACCELERATOR = 1800  # unknowns, on a GPU or TPU (not measured here)
+_CG_UP_TO = 6000  # unknowns; a single solve on a CPU above _DENSE_UP_TO takes "cg" up to here
 BOND_PENALTY = 100.0
 """Intact bonds between deformable cells: this many times the Hamajima-Kawai spring.
 
@@ -301,43 +302,43 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
     gamma_w = water.unit_weight if water is not None else 0.0
 
     model = Model(
-        nv=jnp.asarray(nv), vmask=jnp.asarray(vmask), free=jnp.asarray(free),
-        kind=jnp.asarray(kind), kn_inv=jnp.asarray(kn_inv, dtype),
-        ks_inv=jnp.asarray(ks_inv, dtype),
-        area=jnp.asarray(np.concatenate([areas, [geometry.signed_area(w) for w in walls]]), dtype),
-        radius=jnp.asarray(radius, dtype), f_ext=jnp.asarray(f_ext, dtype),
-        edge_joint=jnp.asarray(edge_joint), joint_kn=jnp.asarray(joint_kn, dtype),
-        joint_ks=jnp.asarray(joint_ks, dtype), joint_c=jnp.asarray(joint_c, dtype),
-        joint_t=jnp.asarray(joint_t, dtype), joint_tanphi=jnp.asarray(joint_tanphi, dtype),
-        big=jnp.asarray(big), pseudo_mass=jnp.asarray(pseudo_mass, dtype),
-        f_ref=jnp.asarray(f_ref, dtype),
-        tol=jnp.asarray(max(s.tolerance, _tol_floor(dtype)), dtype),
-        step_length=jnp.asarray(step_length, dtype), margin=jnp.asarray(margin, dtype),
-        touch_tol=jnp.asarray(touch_tol, dtype), max_displacement=jnp.asarray(max_disp, dtype),
-        span_tol=jnp.asarray(max(0.01 * L, touch_tol), dtype),
-        cos_parallel=jnp.asarray(math.cos(math.radians(2.0)), dtype),
-        corner_share=jnp.asarray(0.1, dtype),
+        nv=_put(nv), vmask=_put(vmask), free=_put(free),
+        kind=_put(kind), kn_inv=_put(kn_inv, dtype),
+        ks_inv=_put(ks_inv, dtype),
+        area=_put(np.concatenate([areas, [geometry.signed_area(w) for w in walls]]), dtype),
+        radius=_put(radius, dtype), f_ext=_put(f_ext, dtype),
+        edge_joint=_put(edge_joint), joint_kn=_put(joint_kn, dtype),
+        joint_ks=_put(joint_ks, dtype), joint_c=_put(joint_c, dtype),
+        joint_t=_put(joint_t, dtype), joint_tanphi=_put(joint_tanphi, dtype),
+        big=_put(big), pseudo_mass=_put(pseudo_mass, dtype),
+        f_ref=_put(f_ref, dtype),
+        tol=_put(max(s.tolerance, _tol_floor(dtype)), dtype),
+        step_length=_put(step_length, dtype), margin=_put(margin, dtype),
+        touch_tol=_put(touch_tol, dtype), max_displacement=_put(max_disp, dtype),
+        span_tol=_put(max(0.01 * L, touch_tol), dtype),
+        cos_parallel=_put(math.cos(math.radians(2.0)), dtype),
+        corner_share=_put(0.1, dtype),
         max_iterations=jnp.asarray(s.max_iterations), max_substeps=jnp.asarray(max_substeps),
-        joint_intact=jnp.asarray(joint_intact.astype(bool)),
-        gamma_w=jnp.asarray(gamma_w, dtype),
-        bolt_blocks=jnp.asarray(bolts["blocks"]),
-        bolt_offsets=jnp.asarray(bolts["offsets"], dtype),
-        bolt_k=jnp.asarray(bolts["k"], dtype), bolt_cap=jnp.asarray(bolts["cap"], dtype),
-        bolt_comp=jnp.asarray(bolts["comp"], dtype),
-        bolt_pullout=jnp.asarray(bolts["pullout"]),
-        cell_D=jnp.asarray(cell_D, dtype), bond_penalty=jnp.asarray(BOND_PENALTY, dtype),
-        verts0=jnp.asarray(verts, dtype), centroid0=jnp.asarray(all_cents, dtype),
+        joint_intact=_put(joint_intact.astype(bool)),
+        gamma_w=_put(gamma_w, dtype),
+        bolt_blocks=_put(bolts["blocks"]),
+        bolt_offsets=_put(bolts["offsets"], dtype),
+        bolt_k=_put(bolts["k"], dtype), bolt_cap=_put(bolts["cap"], dtype),
+        bolt_comp=_put(bolts["comp"], dtype),
+        bolt_pullout=_put(bolts["pullout"]),
+        cell_D=_put(cell_D, dtype), bond_penalty=_put(BOND_PENALTY, dtype),
+        verts0=_put(verts, dtype), centroid0=_put(all_cents, dtype),
         n_blocks=N, n_vertices=V, n_big=len(big), use_cells=use_cells,
         cell_capacity=cell_capacity, linear_solver=linear_solver_for(s.linear_solver, n_rock * D),
         n_bolts=len(bolts["k"]), has_water=water is not None, ndof=D,
     )
     state = State(
-        verts=jnp.asarray(verts, dtype), centroid=jnp.asarray(all_cents, dtype),
-        u=jnp.zeros((N, 2), dtype), rot=jnp.zeros(N, dtype), alive=jnp.ones(N, bool),
-        bolt_force=jnp.zeros(len(bolts["k"]), dtype),
-        bolt_state=jnp.zeros(len(bolts["k"]), jnp.int32),
-        bolt_rest=jnp.zeros(len(bolts["k"]), dtype),
-        strain=jnp.zeros((N, 3), dtype), stress=jnp.zeros((N, 3), dtype),
+        verts=_put(verts, dtype), centroid=_put(all_cents, dtype),
+        u=_put(np.zeros((N, 2), dtype)), rot=_put(np.zeros(N, dtype)), alive=_put(np.ones(N, bool)),
+        bolt_force=_put(np.zeros(len(bolts["k"]), dtype)),
+        bolt_state=_put(np.zeros(len(bolts["k"]), np.int32)),
+        bolt_rest=_put(np.zeros(len(bolts["k"]), dtype)),
+        strain=_put(np.zeros((N, 3), dtype)), stress=_put(np.zeros((N, 3), dtype)),
         capacity=capacity, **empty_history(N, capacity, V, dtype),
     )
     excavation = [pc.excavation for pc in pieces]
@@ -439,7 +440,8 @@ def _bolts(scene, polys, cents, pieces, tol) -> dict:
     )
 
 
-def linear_solver_for(choice: str, unknowns: int, *, platform: str | None = None) -> str:
+def linear_solver_for(choice: str, unknowns: int, *, platform: str | None = None,
+                      batch: bool = False) -> str:
     """The linear solver of the Newton iteration: the scene's ``solver.linear_solver``.
 
     "auto" decides by size and where the solve runs (BENCHMARKS.md, "Scaling:
@@ -451,22 +453,30 @@ def linear_solver_for(choice: str, unknowns: int, *, platform: str | None = None
       ``_DENSE_UP_TO_ACCELERATOR`` (1,800).
       On a 2-core CPU SuperLU is already 1.3 times faster at 576 unknowns
       and 7 times at 1,788;
-    - above, on a CPU: "sparse" (SciPy's SuperLU on the host), 4 to 7 times
-      faster than the iterative path at 2,000 to 10,000 blocks on a 2-core CPU
-      (3 times at 600 blocks), if with 1.5 times its memory. A batch (solved
-      under ``vmap``, jaxdem.batch) too: its members' factorisations
-      run one after another and finished members are skipped; on the
-      492-block tunnel of bench_scaling.py a batch of 8 took 0.25 s a sample
-      this way against 0.44 with "cg" and 0.60 with "dense" (0.31 for a loop
-      of single solves);
-    - above, on a GPU or TPU: "cg", matrix-free preconditioned conjugate
-      gradients, jittable, memory linear in the contacts; the host callback of
-      "sparse" would copy every matrix to the host.
+    - above, for a single solve on a CPU, up to ``_CG_UP_TO`` (6,000) unknowns,
+      2,000 rigid blocks: "cg", matrix-free preconditioned conjugate gradients.
+      Its solve is slower than SuperLU's (1.1 to 4 times at 400 to 2,000 blocks),
+      but its program is cached on disk: the sparse path's host callback keeps
+      JAX from caching the increment, so every process compiled it again, 8 to
+      13 s on a 2-core CPU, more than the whole solve at these sizes
+      (BENCHMARKS.md, "Time to answer");
+    - above that, on a CPU: "sparse" (SciPy's SuperLU on the host), 4 to 7 times
+      faster than the iterative path at 2,000 to 10,000 blocks on a 2-core CPU,
+      if with 1.5 times its memory. A batch (``batch=True``, solved under
+      ``vmap``, jaxdem.batch) takes it from ``_DENSE_UP_TO`` on: its members'
+      factorisations run one after another and finished members are skipped;
+      on the 492-block tunnel of bench_scaling.py a batch of 8 took 0.25 s a
+      sample this way against 0.44 with "cg" and 0.60 with "dense" (0.31 for a
+      loop of single solves);
+    - above ``_DENSE_UP_TO_ACCELERATOR``, on a GPU or TPU: "cg", jittable,
+      memory linear in the contacts; the host callback of "sparse" would copy
+      every matrix to the host.
 
     Args:
       choice: "auto", "dense", "sparse" or "cg"; anything but "auto" is kept.
       unknowns: degrees of freedom of the rock blocks (3 or 6 per block).
       platform: JAX platform ("cpu", "gpu", "tpu"); default the default backend.
+      batch: the solve is a vmapped batch (jaxdem.batch), not a single scene.
 
     Returns:
       "dense", "sparse" or "cg".
@@ -481,7 +491,9 @@ def linear_solver_for(choice: str, unknowns: int, *, platform: str | None = None
     accelerator = platform != "cpu"
     if unknowns <= (_DENSE_UP_TO_ACCELERATOR if accelerator else _DENSE_UP_TO):
         return "dense"
-    return "cg" if accelerator else "sparse"
+    if accelerator or (not batch and unknowns <= _CG_UP_TO):
+        return "cg"
+    return "sparse"
 
 
 def _tol_floor(dtype) -> float:
@@ -505,6 +517,13 @@ def _boxes(verts, margin):
     lo = verts.min(1) - 0.5 * margin
     hi = verts.max(1) + 0.5 * margin
     return lo, hi
+
+
+def _put(x, dtype=None) -> jax.Array:
+    """A host value on the device as it is (NumPy, then one transfer): ``jnp.asarray`` and
+    ``jnp.zeros`` compile a small program for each new shape and dtype, some twenty of
+    them for a scene's model, about 0.3 s of a cold start (and a cache read each, warm)."""
+    return jax.device_put(np.asarray(x, dtype))
 
 
 def bucket(n: int) -> int:

@@ -1440,8 +1440,34 @@ MAX_COMPILED = 16
 """Compiled increments kept in memory (least recently used dropped first)."""
 
 
-def _compiled(fn, *args):
+COMPILE_TIMES = {"lower_s": 0.0, "compile_s": 0.0}
+"""Time spent in :func:`_compiled` by this process: tracing and lowering, and XLA
+compilation (or loading from the persistent cache), s."""
+
+
+CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+"""XLA options of jaxdem's large programs on a CPU. Without the new fusion emitters
+XLA compiled the increment in 0.6 to 0.7 of the time (10.3 -> 6.1 s dense, 10.7 ->
+7.7 s cg, 20 x 20 grid; 14 -> 9 s, incline) and the solve was no slower, with
+bitwise the same answers (BENCHMARKS.md, "Time to answer"). A jaxlib that does
+not know an option compiles without them."""
+
+
+def _xla_compile(lowered):
+    """``lowered.compile()``, with :data:`CPU_COMPILER_OPTIONS` on a CPU."""
+    if CPU_COMPILER_OPTIONS and jax.default_backend() == "cpu":
+        try:
+            return lowered.compile(compiler_options=dict(CPU_COMPILER_OPTIONS))
+        except jax.errors.JaxRuntimeError:  # an option this XLA does not have
+            pass
+    return lowered.compile()
+
+
+def _compiled(fn, *args, **static):
     """``fn`` (jitted) compiled for these argument shapes and static settings; compile time (s).
+
+    ``static`` holds ``fn``'s static keyword arguments; the compiled program is
+    called without them.
 
     One compilation per shape: the samples of a sweep and the iterations of a
     back-analysis reuse it. At most :data:`MAX_COMPILED` are kept: a compiled
@@ -1452,12 +1478,16 @@ def _compiled(fn, *args):
     cache on disk still serves a shape that comes back.
     """
     leaves, tree = jax.tree.flatten(args)
-    key = (fn, tree, tuple((x.shape, str(x.dtype)) for x in leaves))
+    key = (fn, tree, tuple((x.shape, str(x.dtype)) for x in leaves), tuple(sorted(static.items())))
     if key in _COMPILED:
         _COMPILED.move_to_end(key)
         return _COMPILED[key], 0.0
     t0 = time.perf_counter()
-    compiled = fn.lower(*args).compile()
+    lowered = fn.lower(*args, **static)
+    t1 = time.perf_counter()
+    compiled = _xla_compile(lowered)
+    COMPILE_TIMES["lower_s"] += t1 - t0
+    COMPILE_TIMES["compile_s"] += time.perf_counter() - t1
     _COMPILED[key] = compiled
     if len(_COMPILED) > MAX_COMPILED:
         _COMPILED.popitem(last=False)
@@ -1519,8 +1549,8 @@ def _imbalance(balance) -> float:
     force carried (no load and no net reaction: a self-balanced in-situ
     stress; see :func:`_commit`).
     """
-    applied = np.asarray(balance["applied"][:2])
-    reaction = np.asarray(balance["reaction"][:2])
+    applied = np.asarray(balance["applied"])[:2]  # sliced on the host: no program to compile
+    reaction = np.asarray(balance["reaction"])[:2]
     return float(np.linalg.norm(applied + reaction) / max(float(balance["scale"]), 1e-300))
 
 
@@ -1823,7 +1853,9 @@ class _Driver:
         loads, dloads = self.loads(base)
         while True:
             if self.dstate is None:
-                st, overflow = _preload(self.model, self.state, loads, *args, mode=mode)
+                pre, dt = _compiled(_preload, self.model, self.state, loads, *args, mode=mode)
+                self.compile_s += dt
+                st, overflow = pre(self.model, self.state, loads, *args)
             else:
                 dargs = tuple(jnp.asarray(x[1:], self.layout.dtype) for x in stacks)
                 st, overflow, self.dstate = _preload_tangent(

@@ -20,6 +20,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 # Contact spring states.
 OPEN, STICK, SLIP = 0, 1, 2
@@ -225,16 +226,18 @@ class State:
 def empty_history(n_blocks: int, capacity: int, n_vertices: int, dtype) -> dict:
     """Contact history arrays of a given capacity, all slots empty."""
     shape = (capacity, 2, n_vertices)
-    return dict(
-        pairs=jnp.full((capacity, 2), n_blocks, jnp.int32),
-        fs=jnp.zeros(shape, dtype),
-        fn=jnp.zeros(shape, dtype),
-        fn0=jnp.zeros(shape, dtype),
-        failed=jnp.zeros(shape, bool),
-        edge=jnp.zeros(shape, jnp.int32),
-        cstate=jnp.zeros(shape, jnp.int32),
-        present=jnp.zeros(shape, bool),
-    )
+    # Made in NumPy and sent in one transfer: jnp.zeros would compile a small program
+    # for each shape and dtype at start-up.
+    return jax.device_put(dict(
+        pairs=np.full((capacity, 2), n_blocks, np.int32),
+        fs=np.zeros(shape, dtype),
+        fn=np.zeros(shape, dtype),
+        fn0=np.zeros(shape, dtype),
+        failed=np.zeros(shape, bool),
+        edge=np.zeros(shape, np.int32),
+        cstate=np.zeros(shape, np.int32),
+        present=np.zeros(shape, bool),
+    ))
 
 
 def grow_capacity(state: State, capacity: int) -> State:

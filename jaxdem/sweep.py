@@ -32,7 +32,6 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
-from scipy.special import ndtr, ndtri
 
 from jaxdem.batch import BatchResult, solve_batch
 from jaxdem.differentiable import NotSmooth
@@ -104,6 +103,9 @@ class Variable:
 
     def quantile(self, u) -> np.ndarray:
         """The values at probabilities u in (0, 1) (for a range: its uniform distribution)."""
+        # SciPy is loaded here, not with the module: ``import jaxdem`` stays quick.
+        from scipy.special import ndtr, ndtri
+
         u = np.asarray(u, float)
         a = self.args
         if self.kind in ("range", "uniform"):

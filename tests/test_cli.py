@@ -309,6 +309,33 @@ def test_run_prints_progress_monitors_and_times(fake_solver, scene_file, tmp_pat
     assert "result.json" in captured.out and "blocks.png" in captured.out
 
 
+def test_no_figures_and_the_answer_before_the_figures(fake_solver, scene_file, tmp_path,
+                                                      capsys, monkeypatch):
+    phases = tmp_path / "phases.json"
+    monkeypatch.setenv("JAXDEM_PHASES", str(phases))
+    out = tmp_path / "o"
+    assert main(["run", str(scene_file), "--out", str(out), "--no-figures"]) == 0
+    assert (out / "result.json").is_file() and not list(out.glob("*.png"))
+    assert "status: converged" in capsys.readouterr().out
+    marks = json.loads(phases.read_text())
+    assert marks["solved"] <= marks["answered"] <= marks["figures"] <= marks["end"]
+    # With figures: result.json and the summary are out before the first figure is drawn.
+    import jaxdem.plots as plots
+
+    seen = {}
+    real = plots.write_figures
+
+    def spy(result, folder):
+        seen["json"] = (folder / "result.json").is_file()
+        seen["summary"] = "status: converged" in capsys.readouterr().out
+        return real(result, folder)
+
+    monkeypatch.setattr(plots, "write_figures", spy)
+    assert main(["run", str(scene_file), "--out", str(tmp_path / "f")]) == 0
+    assert seen == {"json": True, "summary": True}
+    assert (tmp_path / "f" / "blocks.png").is_file()
+
+
 def test_default_out_dir(fake_solver, scene_file, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     assert main(["run", str(scene_file)]) == 0
