@@ -250,11 +250,13 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ey, cy, not_dup):
     # length: no spring.
     active = near & (share > 0)
     own_edge = jnp.where(po, k[None, :], jnp.where(pi, prev, -1))
-    # Each centroid's distance to its own side of the contact: X's to the line through
-    # its vertex, Y's to its face. Measured both to Y's face, an overlap shortened X's h
-    # (and stiffened its spring) but not Y's, and a contact seen from both blocks
-    # (coincident corners) got two different springs.
-    h_x = jnp.maximum(jnp.sum((cx[:, None, :] - xv) * n, axis=-1), 0.0)
+    # Each centroid's distance to its own side of an edge-to-edge contact: X's to its
+    # own face (through its vertex), Y's to its face. Measured both to Y's face, an
+    # overlap shortened X's h (and stiffened its spring) but not Y's, and a contact seen
+    # from both blocks (coincident corners) got two different springs. A corner has
+    # no face of its own on the contact: its h is to Y's face.
+    h_x = jnp.maximum(jnp.sum((cx[:, None, :] - jnp.where(parallel[..., None], xv, q)) * n,
+                              axis=-1), 0.0)
     h_y = jnp.maximum(jnp.sum((q - cy[:, None, :]) * n, axis=-1), 0.0)
     return dict(active=active, gap=gap, point=xv, normal=n, tangent=t, edge=e,
                 share=share, h_x=h_x, h_y=h_y, own_edge=own_edge,

@@ -36,7 +36,11 @@ from jaxdem.state import ROCK, WALL_FIXED, WALL_ROLLER, Model, State, empty_hist
 _USE_CELLS_ABOVE = 400  # blocks; below this all-pairs boxes are cheaper
 _DENSE_UP_TO = 600  # unknowns; above this sparse direct (CPU) or iterative (GPU, batches)
 _DENSE_UP_TO_ACCELERATOR = 1800  # unknowns, on a GPU or TPU (not measured here)
-_CG_UP_TO = 6000  # unknowns; a single solve on a CPU above _DENSE_UP_TO takes "cg" up to here
+# Unknowns up to which a single solve on a CPU above _DENSE_UP_TO would take "cg" (its
+# program caches on disk). Kept equal to _DENSE_UP_TO, i.e. no such band: the cg path
+# has no slip coupling, and on seed example 4 (228 blocks) it ran into the iteration
+# limit where "sparse" converges (issue 18's measurements in BENCHMARKS.md).
+_CG_UP_TO = _DENSE_UP_TO
 BOND_PENALTY = 100.0
 """Intact bonds between deformable cells: this many times the Hamajima-Kawai spring.
 
@@ -453,13 +457,10 @@ def linear_solver_for(choice: str, unknowns: int, *, platform: str | None = None
       ``_DENSE_UP_TO_ACCELERATOR`` (1,800).
       On a 2-core CPU SuperLU is already 1.3 times faster at 576 unknowns
       and 7 times at 1,788;
-    - above, for a single solve on a CPU, up to ``_CG_UP_TO`` (6,000) unknowns,
-      2,000 rigid blocks: "cg", matrix-free preconditioned conjugate gradients.
-      Its solve is slower than SuperLU's (1.1 to 4 times at 400 to 2,000 blocks),
-      but its program is cached on disk: the sparse path's host callback keeps
-      JAX from caching the increment, so every process compiled it again, 8 to
-      13 s on a 2-core CPU, more than the whole solve at these sizes
-      (BENCHMARKS.md, "Time to answer");
+    - (``_CG_UP_TO``: a band above it where a single CPU solve would take "cg",
+      whose program caches on disk, unlike the sparse path's host callback (8 to
+      13 s of compilation in every process, BENCHMARKS.md "Time to answer"). It is
+      empty: "cg" has no slip coupling and did not converge on seed example 4.)
     - above that, on a CPU: "sparse" (SciPy's SuperLU on the host), 4 to 7 times
       faster than the iterative path at 2,000 to 10,000 blocks on a 2-core CPU,
       if with 1.5 times its memory. A batch (``batch=True``, solved under

@@ -78,15 +78,14 @@ def test_pcg_and_compaction_match_a_dense_solve():
 
 
 @pytest.mark.parametrize("unknowns, platform, expected", [
-    (300, "cpu", "dense"), (600, "cpu", "dense"), (603, "cpu", "cg"),
-    (1800, "cpu", "cg"), (6000, "cpu", "cg"), (6003, "cpu", "sparse"),
+    (300, "cpu", "dense"), (600, "cpu", "dense"), (603, "cpu", "sparse"),
+    (1800, "cpu", "sparse"), (6000, "cpu", "sparse"), (6003, "cpu", "sparse"),
     (31_392, "cpu", "sparse"), (1800, "gpu", "dense"),
     (1803, "gpu", "cg"), (31_392, "tpu", "cg"),
 ])
 def test_auto_rule(unknowns, platform, expected):
-    """"auto": dense up to 600 unknowns on a CPU (1,800 on an accelerator); above, for one
-    scene on a CPU, CG up to 6,000 (its program is cached on disk, the sparse path's is
-    not), then sparse direct; matrix-free CG on an accelerator (README, Solver)."""
+    """"auto": dense up to 600 unknowns on a CPU (1,800 on an accelerator); above, sparse
+    direct on a CPU; matrix-free CG on an accelerator (README, Solver)."""
     assert model_mod.linear_solver_for("auto", unknowns, platform=platform) == expected
 
 
@@ -117,7 +116,5 @@ def test_scene_setting_reaches_the_model(monkeypatch):
     monkeypatch.setattr(model_mod, "_DENSE_UP_TO", 6)
     monkeypatch.setattr(model_mod, "_DENSE_UP_TO_ACCELERATOR", 6)
     large = parse_scene(scene)
-    assert model_mod.build(large)[0].linear_solver == "cg"
-    monkeypatch.setattr(model_mod, "_CG_UP_TO", 6)
     expected = "sparse" if jax.default_backend() == "cpu" else "cg"
     assert model_mod.build(large)[0].linear_solver == expected
