@@ -37,10 +37,10 @@ _USE_CELLS_ABOVE = 400  # blocks; below this all-pairs boxes are cheaper
 _DENSE_UP_TO = 600  # unknowns; above this sparse direct (CPU) or iterative (GPU, batches)
 _DENSE_UP_TO_ACCELERATOR = 1800  # unknowns, on a GPU or TPU (not measured here)
 # Unknowns up to which a single solve on a CPU above _DENSE_UP_TO would take "cg" (its
-# program caches on disk). Kept equal to _DENSE_UP_TO, i.e. no such band: the cg path
+# program caches on disk). Not above _DENSE_UP_TO, i.e. no such band: the cg path
 # has no slip coupling, and on seed example 4 (228 blocks) it ran into the iteration
 # limit where "sparse" converges (issue 18's measurements in BENCHMARKS.md).
-_CG_UP_TO = _DENSE_UP_TO
+_CG_UP_TO = 0
 BOND_PENALTY = 100.0
 """Intact bonds between deformable cells: this many times the Hamajima-Kawai spring.
 
@@ -492,7 +492,8 @@ def linear_solver_for(choice: str, unknowns: int, *, platform: str | None = None
     accelerator = platform != "cpu"
     if unknowns <= (_DENSE_UP_TO_ACCELERATOR if accelerator else _DENSE_UP_TO):
         return "dense"
-    if accelerator or (not batch and unknowns <= _CG_UP_TO):
+    if accelerator or (not batch and unknowns <= max(_CG_UP_TO, _DENSE_UP_TO)
+                       and _CG_UP_TO > _DENSE_UP_TO):
         return "cg"
     return "sparse"
 
