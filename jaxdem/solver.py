@@ -961,7 +961,8 @@ def _snap_gaps(geo: dict, carried) -> dict:
     iteration stalled, and the stall was followed as a mechanism: the block was
     moved 59 mm. A spring that has carried a force (``carried``, kN/m: its
     committed normal and shear forces) keeps its gap, however small: its force
-    is its history (in float32 a compression of a few eps |x| is a real one). The derivatives of the gaps are kept (jaxdem.differentiable).
+    is its history (in float32 a compression of a few eps |x| is a real one). The
+    derivatives of the gaps are kept (jaxdem.differentiable).
     """
     eps = jnp.finfo(geo["gap"].dtype).eps
     resolution = 8.0 * eps * jnp.max(jnp.abs(geo["point"]), axis=1)
