@@ -133,6 +133,7 @@ class Counter:
         self.std = np.array([o.std for o in obs])
         self.problem, self.ratio, self.target, self.budget = problem, ratio, target, budget
         self.equiv, self.best, self.hit = 0.0, np.inf, None
+        self.outcome = ""  # how back_analyse ended (Gauss-Newton and L-BFGS)
         self.t0 = time.perf_counter()
         self._evaluate = problem.evaluate
         problem.evaluate = self.evaluate
@@ -198,8 +199,10 @@ def run(method, paths, start_u, seed, obs, ratio, target, budget):
     try:
         if method in ("Gauss-Newton", "L-BFGS"):
             opt = "gauss-newton" if method == "Gauss-Newton" else "lbfgs"
-            back_analyse(scene(start), obs, paths, forward=(problem.function(), theta0),
-                         bounds=bounds, optimizer=opt, max_iterations=200, tolerance=1e-10)
+            fit = back_analyse(scene(start), obs, paths, forward=(problem.function(), theta0),
+                               bounds=bounds, optimizer=opt, max_iterations=200,
+                               tolerance=1e-10)
+            c.outcome = f"{fit.status}: {fit.message}"
         elif method == "LM, FD":
             scipy.optimize.least_squares(lambda z: c.residuals(tr.theta_z(z)), z0, method="lm",
                                          max_nfev=int(budget), xtol=1e-12, ftol=1e-12)
@@ -272,6 +275,9 @@ def main(argv=None):
                   f"{'>' if bound else ''}{med:.1f}  median wall "
                   f"{'>' if bound else ''}{float(np.median(wall)):.1f} s  per start: {cells}",
                   flush=True)
+            for k, c in enumerate(runs):
+                if c.hit is None and c.outcome:
+                    print(f"    start {k} did not reach the target: {c.outcome}", flush=True)
         if "Gauss-Newton" in medians:
             gnm = medians["Gauss-Newton"][0]
             for method, (med, bound) in medians.items():

@@ -23,7 +23,7 @@ from scenes import stack
 
 import jaxdem
 from inverse import BackAnalysis, Observation, back_analyse, read_observations
-from inverse.backanalysis import default_std
+from inverse.observations import default_std
 from inverse.plots import write_figures
 from jaxdem.cli import main
 from jaxdem.scene import SceneError, parse_scene
@@ -363,6 +363,22 @@ def test_no_equilibrium_at_the_start(scene):
     assert result.std == {KN: np.inf, KS: np.inf}
     assert result.identifiable == {KN: False, KS: False}
     json.dumps(result.to_dict(), allow_nan=False)
+
+
+def test_a_start_without_equilibrium_moves_towards_the_centre_of_explicit_bounds(scene):
+    # kn = 1e6 has no equilibrium (kn < 1.6e6); the centre of the kn bounds (in log) is
+    # 2e6. The steps of RESTORE_STEPS reach kn = 1.19e6, 1.41e6 (still none) and
+    # 1.68e6 (equilibrium): the fit starts there and goes on to the truth.
+    bounds = {KN: (1e5, 4e7), KS: (1e4, 1e8)}
+    result = fit(scene, exact_observations(tunnel, TRUE), f=mechanism_below(1.6e6),
+                 bounds=bounds)
+    assert result.converged, result.message
+    assert np.all(np.abs(relative_error(result, TRUE)) < 0.01)
+    assert result.start == {KN: START[0], KS: START[1]}
+    assert result.evaluations["no_equilibrium"] == 3
+    note = [w for w in result.warnings if "no equilibrium" in w]
+    assert len(note) == 1 and "75% of the way" in note[0], result.warnings
+    assert f"{KN} = 1.682e+06" in note[0]
 
 
 def test_to_dict_is_json_without_nan(scene):
