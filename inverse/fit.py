@@ -415,6 +415,11 @@ LM_MAX_STEP = 0.125
 factor 3.2 within the default bounds): a trust region, so that a step from far away
 cannot jump from bound to bound, nor try a point where the model is a mechanism (whose
 solve may take many times as long)."""
+LM_BLOCKED = 2
+"""Trial points without equilibrium in one iteration after which the step is sought one
+parameter at a time (``along_axes`` in :func:`run_gauss_newton`): next to a region where
+the model is a mechanism, a step that moves every parameter at once may enter it at any
+length, while one along a single parameter (stiffening one set) need not."""
 U_EDGE = 1.0e-15
 """A Gauss-Newton estimate on a bound is handed back as z = logit(U_EDGE) (or of 1 - U_EDGE)."""
 
@@ -433,7 +438,8 @@ def run_gauss_newton(objective: Objective, z0: np.ndarray, max_iterations: int,
     pushes outwards is held there, and convergence is read on the projected gradient.
     Each trial point costs one solve with sensitivities; a trial that does not lower
     the misfit (or has no equilibrium, or no derivative) is refused and the damping
-    raised. Not optax: the least-squares structure is what makes it converge in a
+    raised. After ``LM_BLOCKED`` trials without equilibrium, or before giving up, it
+    tries steps of one parameter at a time. Not optax: the least-squares structure is what makes it converge in a
     handful of solves.
     """
     tr = objective.transform
@@ -463,6 +469,24 @@ def run_gauss_newton(objective: Objective, z0: np.ndarray, max_iterations: int,
     def projected(u, g):
         return np.where(held(u, g), 0.0, g)
 
+    def along_axes(u, g, A, free, value):
+        """The Gauss-Newton step of one parameter at a time, the largest expected
+        decrease g_j^2 / A_jj first, whole or halved: (u, r, J) of the first that lowers
+        the misfit, or None."""
+        gain = np.where(free, g**2 / np.maximum(np.diag(A), 1e-30), -1.0)
+        for j in np.argsort(-gain)[:int(free.sum())]:
+            s = float(np.clip(-g[j] / max(A[j, j], 1e-30), -LM_MAX_STEP, LM_MAX_STEP))
+            for _ in range(2):
+                u_try = u.copy()
+                u_try[j] = min(max(u[j] + s, 0.0), 1.0)
+                if u_try[j] == u[j]:
+                    break
+                r_try, J_try = weighted(u_try)
+                if r_try is not None and 0.5 * float(r_try @ r_try) < value:
+                    return u_try, r_try, J_try
+                s *= 0.5
+        return None
+
     u = tr.fraction(np.asarray(z0, dtype=np.float64))
     r, Ju = weighted(u)
     if r is None:
@@ -478,6 +502,7 @@ def run_gauss_newton(objective: Objective, z0: np.ndarray, max_iterations: int,
         g = Ju.T @ r
         free = ~held(u, g)
         A = Ju.T @ Ju
+        blocked, axes_tried = 0, False
         while True:
             step = np.zeros_like(u)
             Af = A[np.ix_(free, free)]
@@ -492,6 +517,13 @@ def run_gauss_newton(objective: Objective, z0: np.ndarray, max_iterations: int,
             r_new, J_new = weighted(u_new)
             if r_new is not None and 0.5 * float(r_new @ r_new) < value:
                 break
+            blocked += r_new is None
+            if not axes_tried and (blocked >= LM_BLOCKED or damping * 10.0 > 1e12):
+                axes_tried = True
+                found = along_axes(u, g, A, free, value)
+                if found is not None:
+                    u_new, r_new, J_new = found
+                    break
             damping *= 10.0
             if damping > 1e12:
                 return Run(z_of(u), history, k - 1, LINE_SEARCH_FAILED, _STUCK)
