@@ -50,8 +50,10 @@ def main() -> None:
     from bench_scaling import scene as standing_tunnel
 
     import jaxdem
+    from jaxdem import compile_cache
     from jaxdem import model as model_mod
-    from jaxdem import solver
+    from jaxdem.increment import increment
+    from jaxdem.loads import make_loads
     from jaxdem.scene import parse_scene
 
     jaxdem.config.compilation_cache(False)  # measure compilation, not the cache
@@ -63,12 +65,12 @@ def main() -> None:
         rows = {}
         for name, d in variants(standing_tunnel(spacing, "auto")).items():
             scene = parse_scene(d)
-            solver._COMPILED.clear()
+            compile_cache._COMPILED.clear()
             first = jaxdem.solve(scene)
             times = [jaxdem.solve(scene).timing["solve_s"] for _ in range(args.repeats)]
             m, s, _ = model_mod.build(scene)
-            loads = solver.make_loads(m, jax.numpy.zeros((m.n_blocks, m.ndof)))
-            text = solver.increment.lower(m, s, loads).compile().as_text()
+            loads = make_loads(m, jax.numpy.zeros((m.n_blocks, m.ndof)))
+            text = increment.lower(m, s, loads).compile().as_text()
             ops = sum(1 for line in text.splitlines() if " = " in line and "%" in line)
             conv = first.monitors["vertical"]["convergence"]
             rows[name] = (len(first.blocks), first.timing["compile_s"], statistics.median(times),

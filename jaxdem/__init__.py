@@ -22,7 +22,8 @@ from jaxdem.differentiable import differentiable  # noqa: E402
 from jaxdem.fos import FactorOfSafety, factor_of_safety  # noqa: E402
 from jaxdem.results import Result  # noqa: E402
 from jaxdem.scene import Scene, SceneError, load_scene  # noqa: E402
-from jaxdem.solver import Status, solve  # noqa: E402
+from jaxdem.solver import solve  # noqa: E402
+from jaxdem.status import Status  # noqa: E402
 from jaxdem.sweep import SweepResult, sweep  # noqa: E402
 
 __all__ = ["BatchResult", "FactorOfSafety", "Result", "Scene", "SceneError", "Status",

@@ -29,10 +29,14 @@ import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 
 from jaxdem import model as model_mod
+from jaxdem.compile_cache import _compiled
 from jaxdem.differentiable import _monitor_values, _ParameterMap
+from jaxdem.increment import _increment
+from jaxdem.loads import _preload, _release
 from jaxdem.scene import SceneError, apply_overrides
-from jaxdem.solver import Data, Status, _compiled, _increment, _preload, _release, run, scene_data
+from jaxdem.solver import Data, run, scene_data
 from jaxdem.state import Loads, grow_capacity
+from jaxdem.status import Status
 
 SAMPLE_AXIS = "samples"
 
@@ -47,7 +51,7 @@ class BatchResult:
       monitors: monitor name -> (S,) convergence of a section or (S, 2)
         displacement [ux, uy] of a point (m), at the end of the last stage;
         NaN where the sample found no equilibrium.
-      status: (S,) :class:`jaxdem.solver.Status` labels of each sample's last increment.
+      status: (S,) :class:`jaxdem.status.Status` labels of each sample's last increment.
       stable: (S,) bool, no mechanism was found.
       converged: (S,) bool, every increment reached equilibrium.
       iterations: (S,) Newton iterations of each sample, summed over increments.

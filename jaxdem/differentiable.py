@@ -11,7 +11,7 @@ How it works:
   each parameter seeds the derivatives of the model and loads it changes
   (:class:`_ParameterMap`), and every geometry sub-step that ends in
   equilibrium is differentiated implicitly, with its contact states held
-  (:func:`jaxdem.solver.increment_tangent`): one linear solve with the exact
+  (:func:`jaxdem.increment.increment_tangent`): one linear solve with the exact
   tangent per sub-step, for all parameters at once, never a derivative
   through the Newton iterations. The excavation release, the in-situ state
   and the stage ends are chained through exactly.
@@ -47,15 +47,9 @@ from jaxdem import model as model_mod
 from jaxdem.laws import intact_stiffness, plane_strain_elasticity
 from jaxdem.results import monitor_positions
 from jaxdem.scene import SceneError, apply_overrides
-from jaxdem.solver import (
-    SMOOTH_MODEL,
-    Data,
-    Status,
-    _stage_plan,
-    gravity_material,
-    run,
-    scene_data,
-)
+from jaxdem.sensitivities import SMOOTH_MODEL
+from jaxdem.solver import Data, _stage_plan, gravity_material, run, scene_data
+from jaxdem.status import Status
 
 #: Parameter paths that f can be differentiated with respect to (NAME, I, K are
 #: a name, a list index and a table row).

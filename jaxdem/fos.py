@@ -53,7 +53,7 @@ import numpy as np
 from jaxdem.results import jsonable, write_json
 from jaxdem.scene import SceneError
 
-#: Outcome labels of a trial (from :class:`jaxdem.solver.Status`).
+#: Outcome labels of a trial (from :class:`jaxdem.status.Status`).
 STABLE, MECHANISM = "converged", "mechanism"
 #: Statuses of a factor-of-safety search.
 CONVERGED = "converged"          # bracket narrowed to rtol

@@ -33,7 +33,8 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 from matplotlib.ticker import MaxNLocator
 
-from jaxdem.results import OPEN, SLIP, STICK, Result
+from jaxdem.results import Result
+from jaxdem.state import OPEN, SLIP, STICK
 
 DPI = 150
 

@@ -20,8 +20,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-# Contact spring states, as stored in ``geometry["contacts"]["state"]``.
-OPEN, STICK, SLIP = 0, 1, 2
+from jaxdem.kinematics import _rotate, bolt_geometry, strain_times
+from jaxdem.state import OPEN, SLIP  # contact spring states, as in geometry["contacts"]["state"]
+from jaxdem.status import IMBALANCE_FACTOR, LARGE_SLIP, OVERLAP_TOL, STRENGTH_TOL, Status
 
 
 @dataclasses.dataclass
@@ -163,8 +164,6 @@ def jsonable(x: Any, finite: bool = False) -> Any:
 @jax.jit
 def _material_points(centroid, rot, strain, blocks, offsets, weights):
     """Weighted mean over holders of c + (I + E) R(rot) offset: (n, H) blocks -> (n, 2) points."""
-    from jaxdem.solver import _rotate, strain_times
-
     r = _rotate(offsets, rot[blocks])
     p = centroid[blocks] + r + strain_times(strain[blocks], r)
     return jnp.sum(weights[..., None] * p, axis=-2)
@@ -178,8 +177,6 @@ def _material_moves(u, rot, strain, blocks, offsets, weights):
     float32 a position near y = 2.5 m is resolved to 2.4e-7 m, which is 1.5e-3 of a
     0.16 mm settlement.
     """
-    from jaxdem.solver import _rotate, strain_times
-
     r = _rotate(offsets, rot[blocks])
     d = u[blocks] + r + strain_times(strain[blocks], r) - offsets
     return jnp.sum(weights[..., None] * d, axis=-2)
@@ -319,14 +316,12 @@ def scene_bolts(scene, layout, state) -> list[dict[str, Any]]:
 def bolt_anchors(model, state, layout=None) -> list[np.ndarray]:
     """Current anchor positions of each bolt: a list of (2, 2) arrays (m), for plotting.
 
-    The same anchors the solver uses (:func:`jaxdem.solver.bolt_geometry`), one
+    The same anchors the solver uses (:func:`jaxdem.kinematics.bolt_geometry`), one
     per scene bolt (the mean of its sub-bolts' when an anchor lies on a shared
     face); empty when the model has no bolts.
     """
     if not model.n_bolts:
         return []
-    from jaxdem.solver import bolt_geometry
-
     g = bolt_geometry(model, state)
     ends = np.stack([np.asarray(g["point_b"]), np.asarray(g["point_a"])], axis=1)
     if layout is None:
@@ -380,8 +375,6 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
 
     ``ref`` is the state displacements are measured from (None: the start).
     """
-    from jaxdem.solver import Status
-
     nr = layout.n_rock
     snap = {k: np.asarray(v) for k, v in info["snapshot"].items()}
     status = Status(int(info["status"]))
@@ -451,8 +444,6 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
             "monitors": {m: [_scalar(h["monitors"][m]) for h in hist] for m in monitors},
         })
     bolts = scene_bolts(scene, layout, state)
-    from jaxdem.solver import IMBALANCE_FACTOR, LARGE_SLIP, OVERLAP_TOL, STRENGTH_TOL
-
     imbalance_tol = IMBALANCE_FACTOR * float(model.tol)
 
     admissibility = {

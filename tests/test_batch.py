@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from scenes import block_on_incline, jointed_tunnel
 
 import jaxdem
-from jaxdem import batch, solver
+from jaxdem import batch, compile_cache
 from jaxdem.batch import solve_batch
 from jaxdem.differentiable import Problem
 from jaxdem.model import bucket
@@ -54,19 +54,19 @@ def test_samples_compile_once(tunnel):
     rng = np.random.default_rng(3)
     theta = np.column_stack([rng.uniform(1e6, 4e6, 4), rng.uniform(25, 40, 4)])
     solve_batch(tunnel, TUNNEL_PARAMS[:2], theta, chunk=4)
-    compiled = len(solver._COMPILED)
+    compiled = len(compile_cache._COMPILED)
     again = solve_batch(tunnel, TUNNEL_PARAMS[:2], theta[::-1] * [1.1, 0.95], chunk=4)
-    assert len(solver._COMPILED) == compiled
+    assert len(compile_cache._COMPILED) == compiled
     assert again.timing["compile_s"] == 0.0
 
 
 def test_back_analysis_iterations_compile_once(tunnel):
     problem = Problem(tunnel, ["joints.set1.kn", "joints.set1.ks"])
     problem.evaluate(problem.theta0 * 1.1, jacobian=True)
-    compiled = len(solver._COMPILED)
+    compiled = len(compile_cache._COMPILED)
     problem.evaluate(problem.theta0 * 0.8, jacobian=True)
     problem.evaluate(problem.theta0 * 1.3)
-    assert len(solver._COMPILED) == compiled
+    assert len(compile_cache._COMPILED) == compiled
 
 
 def test_failed_samples_are_held_and_reported():

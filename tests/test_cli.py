@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from jaxdem.cli import ProgressBar, main
-from jaxdem.results import STICK, Result
+from jaxdem.results import Result
+from jaxdem.state import STICK
 
 # A 1 x 1 m block resting on a fixed 4 x 1 m base; one point monitor at its centroid.
 SCENE = """

@@ -46,6 +46,7 @@ from jaxdem import solver
 from jaxdem.geometry import centroid
 from jaxdem.laws import equivalent_stiffness, intact_stiffness
 from jaxdem.scene import parse_scene
+from jaxdem.status import Status
 
 DTYPES = ["float64", "float32"]
 TOL = {"float64": {"rel": 1e-5, "abs": 0.0}, "float32": {"rel": 1e-3, "abs": 5e-7}}
@@ -494,20 +495,20 @@ def test_frozen_chattering_slots_never_give_a_converged_answer_beyond_strength(n
     checked = {}
 
     def stage_end(driver, stage):
-        if driver.status == solver.Status.CONVERGED:
+        if driver.status == Status.CONVERGED:
             checked[stage] = strength_violations(driver, float(driver.model.tol))
 
     driver = solver.run(scene, model, state, layout, solver.scene_data(scene, layout),
                         stage_end=stage_end)
     assert all(not bad for bad in checked.values()), checked
-    if driver.status == solver.Status.CONVERGED:
+    if driver.status == Status.CONVERGED:
         assert not strength_violations(driver, float(driver.model.tol))
     else:
-        assert driver.status in (solver.Status.MECHANISM, solver.Status.ITERATION_LIMIT)
+        assert driver.status in (Status.MECHANISM, Status.ITERATION_LIMIT)
     if name == "frozen_slots_opening":
         assert "initial" in checked
     else:
-        assert driver.status == solver.Status.CONVERGED
+        assert driver.status == Status.CONVERGED
 
 
 def _toppling_example(dtype, **overrides):

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from jaxdem import plots
-from jaxdem.results import OPEN, SLIP, STICK, Result
+from jaxdem.results import Result
+from jaxdem.state import OPEN, SLIP, STICK
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 

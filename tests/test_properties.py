@@ -7,7 +7,7 @@ supports, bolts, boundaries and load steps) and small hand-built block assemblie
 (stacks, blocks on inclines, wedges between fixed blocks). For every sample:
 
 - result.json is standard JSON: no NaN or infinity anywhere in ``to_dict()``;
-- a converged result is admissible: no overlap beyond ``solver.OVERLAP_TOL`` of the
+- a converged result is admissible: no overlap beyond ``jaxdem.status.OVERLAP_TOL`` of the
   block's size, and in global equilibrium (relative imbalance of every increment
   <= 1e-8 with ``solver.tolerance`` = 1e-9, <= 10 x tolerance at the default tolerance)
   and every contact spring satisfies its strength law (tension cut-off and
@@ -47,11 +47,12 @@ from hypothesis import strategies as st
 from scenes import block_on_incline, rect_on_slope, slope_base
 
 import jaxdem
-from jaxdem import geometry, solver
+from jaxdem import compile_cache, geometry, solver
 from jaxdem.contact import narrow_phase
 from jaxdem.laws import slot_properties
 from jaxdem.scene import SolverSettings, parse_scene
 from jaxdem.state import OPEN, SLIP
+from jaxdem.status import OVERLAP_TOL
 
 WALL_TIME_S = 60.0
 """Largest wall time of one solve (s), compilation included, on a 2-core CPU."""
@@ -551,7 +552,7 @@ def captured_driver():
 def release_compiled_programs() -> None:
     """Drop the programs compiled for this example's shapes.
 
-    jaxdem keeps every compiled program for the life of the process (solver._COMPILED
+    jaxdem keeps every compiled program for the life of the process (compile_cache._COMPILED
     and jax's jit caches): about 35 MB and 700 memory mappings per new shape, so that a
     process that solves a hundred differently-shaped scenes runs out of mappings
     (vm.max_map_count) and XLA's compiler crashes (found by the long profile; reported).
@@ -559,7 +560,7 @@ def release_compiled_programs() -> None:
     long profile (and a full test run after it) would die of it. The persistent
     compilation cache on disk still serves repeated shapes.
     """
-    getattr(solver, "_COMPILED", {}).clear()
+    getattr(compile_cache, "_COMPILED", {}).clear()
     jax.clear_caches()
 
 
@@ -659,7 +660,7 @@ def outcome_problems(result, driver, elapsed: float, tolerance: float) -> list[s
             problems.append(f"converged with global imbalance {worst:.3g} > {bound:.0e}")
         problems += strength_violations(driver, tol)[:10]
         adm = d["admissibility"]
-        if not (adm["admissible"] and adm["overlap_rel"] <= solver.OVERLAP_TOL):
+        if not (adm["admissible"] and adm["overlap_rel"] <= OVERLAP_TOL):
             problems.append(f"converged but not admissible: {adm}")
     else:
         if d["status"] == "converged":

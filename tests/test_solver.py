@@ -9,10 +9,13 @@ import pytest
 from scenes import ROCK, block_on_incline, slide_and_stop, stack
 
 import jaxdem
+from jaxdem import compile_cache, solver
 from jaxdem import model as model_mod
-from jaxdem import solver
 from jaxdem.geometry import signed_area
+from jaxdem.increment import increment
+from jaxdem.loads import make_loads
 from jaxdem.scene import parse_scene
+from jaxdem.status import Status
 
 
 def _with_solver(d, **kw):
@@ -100,11 +103,11 @@ def test_capacity_overflow_grows_and_gives_the_same_answer():
     model, state, _ = model_mod.build(scene)
     ref_state = state
     small = _capacity_one(state)
-    loads = solver.make_loads(model, model.f_ext)
+    loads = make_loads(model, model.f_ext)
     _, s_small, info_small, _ = solver.run_increment(model, small, loads)
     _, s_ref, info_ref, _ = solver.run_increment(model, ref_state, loads)
     assert s_small.capacity > 1
-    assert int(info_small["status"]) == solver.Status.CONVERGED
+    assert int(info_small["status"]) == Status.CONVERGED
     np.testing.assert_allclose(np.asarray(s_small.u), np.asarray(s_ref.u), rtol=1e-10, atol=1e-15)
 
 
@@ -112,8 +115,8 @@ def test_overflow_is_flagged_not_truncated():
     scene = parse_scene(stack(4))
     model, state, _ = model_mod.build(scene)
     tiny = _capacity_one(state)
-    _, info = solver.increment(model, tiny, solver.make_loads(model, model.f_ext))
-    assert int(info["status"]) == solver.Status.CAPACITY_OVERFLOW
+    _, info = increment(model, tiny, make_loads(model, model.f_ext))
+    assert int(info["status"]) == Status.CAPACITY_OVERFLOW
     assert int(info["pairs_needed"]) >= 4
 
 
@@ -137,7 +140,7 @@ def test_float32_matches_float64():
 
 
 def test_status_messages_are_human():
-    for s in solver.Status:
+    for s in Status:
         assert len(s.message) > 20 and s.label == s.name.lower()
 
 
@@ -151,11 +154,11 @@ def test_increment_is_jitted_once_per_shape():
 def test_dense_and_iterative_solvers_agree():
     scene = parse_scene(stack(3))
     model, state, _ = model_mod.build(scene)
-    loads = solver.make_loads(model, model.f_ext)
+    loads = make_loads(model, model.f_ext)
     _, s_dense, _, _ = solver.run_increment(model, state, loads)
     model_cg = dataclasses.replace(model, linear_solver="cg")
     _, s_cg, info, _ = solver.run_increment(model_cg, state, loads)
-    assert int(info["status"]) == solver.Status.CONVERGED
+    assert int(info["status"]) == Status.CONVERGED
     np.testing.assert_allclose(np.asarray(s_cg.u), np.asarray(s_dense.u), rtol=1e-7, atol=1e-14)
 
 
@@ -163,24 +166,24 @@ def test_increment_vmaps_over_load_factors():
     scene = parse_scene(stack(2))
     model, state, _ = model_mod.build(scene)
     lams = jnp.array([0.25, 0.5, 1.0])
-    batch = jax.vmap(lambda lam: solver.make_loads(model, lam * model.f_ext))(lams)
-    states, info = jax.vmap(solver.increment, in_axes=(None, None, 0))(model, state, batch)
+    batch = jax.vmap(lambda lam: make_loads(model, lam * model.f_ext))(lams)
+    states, info = jax.vmap(increment, in_axes=(None, None, 0))(model, state, batch)
     for k, lam in enumerate(lams):
-        s1, _ = solver.increment(model, state, solver.make_loads(model, lam * model.f_ext))
+        s1, _ = increment(model, state, make_loads(model, lam * model.f_ext))
         np.testing.assert_allclose(np.asarray(states.u[k]), np.asarray(s1.u), rtol=1e-9, atol=1e-15)
-    assert (np.asarray(info["status"]) == solver.Status.CONVERGED).all()
+    assert (np.asarray(info["status"]) == Status.CONVERGED).all()
 
 
 def test_compiled_programs_are_bounded(monkeypatch):
     """Scenes of new shapes compile new increments; only the MAX_COMPILED most recently
     used are kept (a process that solved hundreds of shapes crashed out of memory
     mappings), and a dropped shape solves again, to the same answer."""
-    monkeypatch.setattr(solver, "MAX_COMPILED", 2)
-    monkeypatch.setattr(solver, "_COMPILED", type(solver._COMPILED)())
+    monkeypatch.setattr(compile_cache, "MAX_COMPILED", 2)
+    monkeypatch.setattr(compile_cache, "_COMPILED", type(compile_cache._COMPILED)())
     first = jaxdem.solve(parse_scene(stack(1)))
     for n in (2, 3):
         jaxdem.solve(parse_scene(stack(n)))
-        assert len(solver._COMPILED) <= 2
+        assert len(compile_cache._COMPILED) <= 2
     again = jaxdem.solve(parse_scene(stack(1)))
-    assert again.converged and len(solver._COMPILED) <= 2
+    assert again.converged and len(compile_cache._COMPILED) <= 2
     assert again.monitors == first.monitors

@@ -23,7 +23,9 @@ from scenes import ROCK, incline_frame, rect_on_slope, slope_base
 import jaxdem
 from jaxdem import model as model_mod
 from jaxdem import solver
+from jaxdem.loads import make_loads
 from jaxdem.scene import parse_scene
+from jaxdem.status import Status
 
 GAMMA = 39.0  # kN/m3: the symmetric wedge below weighs 58.5 kN/m
 K_BOLT = 1e5  # kN/m
@@ -226,9 +228,9 @@ def _drive(scene, loads_x):
     for fx in loads_x:
         force = np.zeros((model.n_blocks, model.ndof))
         force[0, 0] = fx
-        loads = solver.make_loads(model, force, bolt_active=np.ones(1, bool))
+        loads = make_loads(model, force, bolt_active=np.ones(1, bool))
         model, state, info, _ = solver.run_increment(model, state, loads)
-        out.append((solver.Status(int(info["status"])), float(state.u[0, 0]),
+        out.append((Status(int(info["status"])), float(state.u[0, 0]),
                     float(state.bolt_force[0]), int(state.bolt_state[0])))
     return out
 
@@ -237,7 +239,7 @@ def test_load_yield_unload_follows_the_elasto_plastic_path():
     k, Y, gap = 1e4, 100.0, 0.05
     path = _drive(parse_scene(_pull_scene(gap, Y)), [50.0, 150.0, 0.0, 50.0])
     (s1, u1, f1, st1), (s2, u2, f2, st2), (s3, u3, f3, st3), (s4, u4, f4, st4) = path
-    assert all(s == solver.Status.CONVERGED for s, *_ in path)
+    assert all(s == Status.CONVERGED for s, *_ in path)
     # Elastic: 50 kN stretches the bolt 5 mm.
     assert math.isclose(f1, 50.0, rel_tol=1e-6) and math.isclose(u1, 50.0 / k, rel_tol=1e-6)
     assert st1 == 0
@@ -259,10 +261,10 @@ def test_a_bolt_carries_compression_only_when_given_a_capacity():
     # a bar with a compression capacity holds it elastically.
     scene = parse_scene(_pull_scene(compression=0.0))
     (s,) = [p[0] for p in _drive(scene, [-20.0])]
-    assert s == solver.Status.MECHANISM
+    assert s == Status.MECHANISM
     scene = parse_scene(_pull_scene(compression=80.0))
     ((s, u, f, st),) = _drive(scene, [-20.0])
-    assert s == solver.Status.CONVERGED
+    assert s == Status.CONVERGED
     assert math.isclose(f, -20.0, rel_tol=1e-6) and math.isclose(u, -20.0 / 1e4, rel_tol=1e-6)
 
 
@@ -299,7 +301,7 @@ def test_large_joint_slip_is_reported_and_small_is_not():
     from scenes import slide_and_stop
 
     from jaxdem.cli import _result_summary
-    from jaxdem.solver import LARGE_SLIP
+    from jaxdem.status import LARGE_SLIP
 
     # Seed example 1: the block slides 1 m down the slope and comes to rest on a stop.
     r = jaxdem.solve(parse_scene(slide_and_stop(gap=1.0)))

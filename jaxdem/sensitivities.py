@@ -1,0 +1,211 @@
+"""Forward-mode sensitivities of a sub-step, the in-situ preload and the release.
+
+Owns the lists of smooth fields (:data:`SMOOTH_MODEL`, :data:`STATE_FLOATS`,
+:data:`LOAD_FLOATS`, :data:`SNAPSHOT_FLOATS`), :func:`_substep_tangent` (each
+converged sub-step differentiated implicitly with its contact states held),
+the solve with the exact tangent (:func:`_tangent_solve`), and the
+derivatives of :func:`jaxdem.loads._preload` and :func:`jaxdem.loads._release`.
+
+Data flow: takes the sub-step (:mod:`jaxdem.substep`), the springs, the
+assembly of :mod:`jaxdem.linsolve` and the loads; used by
+:func:`jaxdem.increment.increment_tangent`, the host driver
+(:mod:`jaxdem.solver`) and :mod:`jaxdem.differentiable`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxdem.linsolve import _assemble_dense, _host_matrix
+from jaxdem.loads import _preload, _release
+from jaxdem.springs import _evaluate, _stiffness_terms, _Sub, _with_slip_coupling
+from jaxdem.state import Loads, Model, State
+from jaxdem.substep import _commit, _newton_and_commit, _prepare
+
+# Model fields that scene parameters change smoothly (see jaxdem.differentiable).
+SMOOTH_MODEL = ("joint_kn", "joint_ks", "joint_c", "joint_t", "joint_tanphi", "kn_inv", "ks_inv",
+                "cell_D", "bolt_k", "bolt_cap", "bolt_comp", "gamma_w")
+STATE_FLOATS = ("verts", "centroid", "u", "rot", "fs", "fn", "fn0", "bolt_force", "bolt_rest",
+                "strain", "stress")
+LOAD_FLOATS = ("force", "water_y")
+SNAPSHOT_FLOATS = ("point", "normal", "fn", "fs", "pw")
+
+
+def _fields(obj, names) -> dict:
+    return {k: getattr(obj, k) for k in names}
+
+
+def _tangent_terms(model: Model, sub: _Sub, ev):
+    """The exact tangent K = -dR/d(du) with the slots' states held, as terms (a, b, L, R, k).
+
+    The slip tangent (:func:`jaxdem.springs._stiffness_terms` with ``consistent``: both
+    springs of a sticking slot, the normal one of a slipping slot, none of an
+    open one; elastic bolts) with the slip law's coupling d fs / d fn_trial =
+    sign(fs) tan(phi), which makes K unsymmetric (:func:`jaxdem.springs._with_slip_coupling`):
+    the matrix Newton's tried tangent uses on the direct paths.
+    """
+    terms = _stiffness_terms(model, sub, ev, True)
+    return _with_slip_coupling(model, sub, ev, terms, jnp.ones((), bool))
+
+
+TANGENT_REFINEMENTS = 2
+"""Refinement steps of the sensitivity solve on its regularised factorisation (see
+:func:`_tangent_solve`): each multiplies the regularisation's error by eps / lambda."""
+
+
+def _host_tangent_solve(a, b, L, Rt, k, Kc, diag, pm, rhs):
+    """:func:`_tangent_solve` on the host: SuperLU of K + eps M, refined on K; NaN if singular."""
+    import scipy.sparse
+    import scipy.sparse.linalg
+
+    a, b, L, Rt, k, Kc, diag, pm, rhs = (np.asarray(x) for x in (a, b, L, Rt, k, Kc, diag, pm,
+                                                                  rhs))
+    K = _host_matrix(a, b, L, Rt, k, Kc, diag)
+    try:
+        lu = scipy.sparse.linalg.splu(K + scipy.sparse.diags(pm, format="csc"),
+                                      permc_spec="MMD_AT_PLUS_A")
+    except RuntimeError:  # "Factor is exactly singular": no derivative here
+        return np.full_like(rhs, np.nan)
+    x = lu.solve(rhs)
+    for _ in range(TANGENT_REFINEMENTS):
+        x = x + lu.solve(rhs - K @ x)
+    return np.where(np.all(np.isfinite(x)), x, np.nan).astype(rhs.dtype)
+
+
+def _tangent_solve(model: Model, sub: _Sub, terms, rhs):
+    """K^-1 rhs for p right-hand sides (p, N, D), K the exact (possibly unsymmetric) tangent.
+
+    K is singular where a free block has a neutral direction in the held states
+    (its contacts all open or slipping, or a rotation about its one contact
+    point). So K + eps M is factorised, eps M the forward solve's pseudo-mass
+    (``model.pseudo_mass``), and the answer refined on K itself
+    (:data:`TANGENT_REFINEMENTS` steps, x += (K + eps M)^-1 (rhs - K x)): where K
+    is regular the pseudo-mass's error, a relative eps / lambda per step, is
+    gone (1e-6 -> 1e-18), and along a neutral direction, which no load
+    excites, the derivative stays zero (the minimum-norm answer). Where the
+    rhs does push along a neutral direction the derivative there is bounded by
+    (1 + refinements) rhs / eps, as the forward solve's own step is.
+    A factorisation that is still singular, or any non-finite entry, gives NaN
+    everywhere: "no derivative at this point", which the back-analysis reads
+    as a step to take back.
+    """
+    p = rhs.shape[0]
+    N, D = model.n_blocks, model.ndof
+    a, b, L, Rt, k = terms
+    free = jnp.repeat(sub.free, D)
+    diag = jnp.where(free, 0.0, 1.0).astype(rhs.dtype)
+    pm = jnp.where(free, model.pseudo_mass.reshape(-1), 0.0).astype(rhs.dtype)
+    B = rhs.reshape(p, N * D).T
+    if model.linear_solver == "dense":
+        K = _assemble_dense(model, sub, a, b, L, Rt, k, diag)
+        lu = jax.scipy.linalg.lu_factor(K + jnp.diag(pm))
+        x = jax.scipy.linalg.lu_solve(lu, B)
+        for _ in range(TANGENT_REFINEMENTS):
+            x = x + jax.scipy.linalg.lu_solve(lu, B - K @ x)
+        x = jnp.where(jnp.all(jnp.isfinite(x)), x, jnp.nan)
+    else:
+        Kc = sub.Kc if sub.Kc is not None else jnp.zeros((0, D, D), rhs.dtype)
+        x = jax.pure_callback(_host_tangent_solve, jax.ShapeDtypeStruct(B.shape, B.dtype),
+                              a, b, L, Rt, k, Kc, diag, pm, B, vmap_method="sequential")
+    return x.T.reshape(rhs.shape)
+
+
+def _substep_tangent(model: Model, state: State, loads: Loads, dmodel, dstate, dloads):
+    """:func:`jaxdem.substep._substep` and the derivatives of its new state and snapshot.
+
+    Returns (the outputs of :func:`jaxdem.substep._substep`, (dstate, dsnapshot)); see
+    :func:`jaxdem.increment.increment_tangent`.
+    """
+    mf0, sf0, lf0 = (_fields(model, SMOOTH_MODEL), _fields(state, STATE_FLOATS),
+                     _fields(loads, LOAD_FLOATS))
+
+    # Geometry, detection and history (the candidate pairs of this sub-step are
+    # integers: no derivative), linearised once: the forward sub-step iterates
+    # on its primal, and its tangent serves all p parameters.
+    def prepare(mf, sf, lf):
+        m = dataclasses.replace(model, **mf)
+        s = dataclasses.replace(state, **sf)
+        ld = dataclasses.replace(loads, **lf)
+        _, sub, st0, pairs, need = _prepare(m, s, ld)
+        return sub, (st0, pairs, need)
+
+    sub, prepare_lin, (st0, pairs, need) = jax.linearize(prepare, mf0, sf0, lf0, has_aux=True)
+    mdl = dataclasses.replace(model, free=sub.free)
+    forward = _newton_and_commit(mdl, state, sub, st0, pairs, need)
+    new_state, du, converged = forward[0], forward[1], forward[2]["converged"]
+    held = new_state.cstate.reshape(-1)
+    all_held = jnp.ones(held.shape, bool)
+    leaves, tree = jax.tree.flatten(sub)
+    smooth = [jnp.issubdtype(x.dtype, jnp.inexact) for x in leaves]
+    floats = lambda sb: [x for x, f in zip(jax.tree.leaves(sb), smooth, strict=True) if f]  # noqa: E731
+
+    def with_floats(fl):
+        it = iter(fl)
+        return tree.unflatten([next(it) if f else x for x, f in zip(leaves, smooth, strict=True)])
+
+    dsub = jax.vmap(lambda dm, ds, dl: floats(prepare_lin(dm, ds, dl)))(dmodel, dstate, dloads)
+
+    # Equilibrium and commit at fixed geometry, in the held states.
+    def settle(mf, fl, sf, x):
+        m = dataclasses.replace(model, **mf)
+        sb = with_floats(fl)
+        mdl = dataclasses.replace(m, free=sb.free)
+        s = dataclasses.replace(state, **sf)
+        ev = _evaluate(mdl, sb, x, all_held, held, held, 0.0)
+        new, _, snap = _commit(mdl, s, sb, pairs, x, ev)
+        return (ev["R"], _fields(new, STATE_FLOATS), {k: snap[k] for k in SNAPSHOT_FLOATS}), ev
+
+    # Linearised apart in the parameters (at the converged du) and in du: each
+    # evaluates only its own tangent paths, where one linearisation in all four
+    # would carry zero tangents through the other's.
+    fl0 = floats(sub)
+    _, lin_p, ev = jax.linearize(lambda mf, fl, sf: settle(mf, fl, sf, du), mf0, fl0, sf0,
+                                 has_aux=True)
+    dR, ds1, dsnap1 = jax.vmap(lin_p)(dmodel, dsub, dstate)
+    ddu = _tangent_solve(mdl, sub, _tangent_terms(mdl, sub, ev), dR)
+    ddu = jnp.where(converged, ddu, 0.0)
+    _, lin_x = jax.linearize(lambda x: settle(mf0, fl0, sf0, x)[0][1:], du)
+    ds2, dsnap2 = jax.vmap(lin_x)(ddu)
+    add = lambda x, y: jax.tree.map(jnp.add, x, y)  # noqa: E731
+    return forward, (add(ds1, ds2), add(dsnap1, dsnap2))
+
+
+@functools.partial(jax.jit, static_argnames=("mode",))
+def _preload_tangent(model: Model, state: State, loads: Loads, args, dmodel, dloads, dargs,
+                     mode: str):
+    """:func:`jaxdem.loads._preload` (its state and overflow flag) and its state's derivatives.
+
+    The derivatives are (p, ...), one per parameter.
+
+    args = (sigma, surface_y, gamma, k0) and dargs their derivatives (p, ...).
+    One compiled call: the plain :func:`jaxdem.loads._preload` runs op by op (compiling it
+    would cost seconds for a millisecond saved in a single solve), and the
+    linearisation gives its values with the derivatives.
+    """
+    def pre(mf, lf, a):
+        m = dataclasses.replace(model, **mf)
+        ld = dataclasses.replace(loads, **lf)
+        new, overflow = _preload(m, state, ld, *a, mode=mode)
+        return _fields(new, STATE_FLOATS), (new, overflow)
+
+    primals = (_fields(model, SMOOTH_MODEL), _fields(loads, LOAD_FLOATS), args)
+    _, lin, (new, overflow) = jax.linearize(pre, *primals, has_aux=True)
+    return new, overflow, jax.vmap(lin)(dmodel, dloads, dargs)
+
+
+@functools.partial(jax.jit, static_argnames=("ndof",))
+def _release_with_tangent(centroid, snap, removed, dcentroid, dsnap, ndof):
+    """:func:`jaxdem.loads._release` (N, D) and its derivatives (p, N, D)."""
+    def rel(c, floats):
+        return _release(c, dict(snap, **floats), removed, ndof)
+
+    floats = {k: snap[k] for k in SNAPSHOT_FLOATS}
+    value = rel(centroid, floats)
+    tangent = jax.vmap(lambda dc, ds: jax.jvp(rel, (centroid, floats), (dc, ds))[1])(
+        dcentroid, dsnap)
+    return value, tangent
