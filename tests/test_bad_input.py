@@ -23,9 +23,11 @@ from test_cli import SCENE
 from test_scene import _set, rock_scene_dict, setting, valid_scene_dict
 
 import jaxdem
-from jaxdem import scene as scene_module
+from jaxdem import scene_toml
 from jaxdem.cli import main
-from jaxdem.scene import SceneError, apply_overrides, load_scene, parse_scene, parse_set_arguments
+from jaxdem.scene import load_scene, parse_scene
+from jaxdem.scene_fields import SceneError
+from jaxdem.scene_overrides import apply_overrides, parse_set_arguments
 
 SQUARE = [[1.0, 1.0], [2.0, 1.0], [2.0, 2.0], [1.0, 2.0]]
 
@@ -290,7 +292,7 @@ def test_byte_order_mark_is_accepted(tmp_path):
 
 
 def test_file_over_the_size_limit_is_refused_unread(tmp_path, monkeypatch):
-    monkeypatch.setattr(scene_module, "MAX_FILE_BYTES", 100)
+    monkeypatch.setattr(scene_toml, "MAX_FILE_BYTES", 100)
     path = tmp_path / "big.toml"
     path.write_text(SCENE_TOML)
     with pytest.raises(SceneError, match="scene file is larger than"):

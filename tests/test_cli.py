@@ -10,7 +10,8 @@ import types
 import numpy as np
 import pytest
 
-from jaxdem.cli import ProgressBar, main
+from jaxdem.cli import main
+from jaxdem.cli_progress import ProgressBar
 from jaxdem.results import Result
 from jaxdem.state import STICK
 
@@ -417,7 +418,7 @@ def test_help_names_the_real_default_out_dir(capsys):
 
 
 def test_scene_summary_counts_generated_blocks_and_plurals(scene_file):
-    from jaxdem.cli import _scene_summary
+    from jaxdem.cli_summaries import _scene_summary
     from jaxdem.rockmass import generate
     from jaxdem.scene import load_scene
 
@@ -429,7 +430,7 @@ def test_scene_summary_counts_generated_blocks_and_plurals(scene_file):
 
 
 def test_stage_counter_counts_the_stages_the_solver_reports():
-    from jaxdem.cli import _stage_count
+    from jaxdem.cli_summaries import _stage_count
     from jaxdem.scene import load_scene
 
     # The demo: the in-situ state, then one excavation stage ("1/2, 2/2", not "3/3").

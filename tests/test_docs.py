@@ -9,12 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxdem import scene as scene_module
+from jaxdem import scene_schema
+from jaxdem.scene_checks import OVERLAP_TOLERANCE
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "scene-format.md"
 
-# Section -> the parser's tuple of accepted fields (read from jaxdem.scene, so that a
+# Section -> the parser's tuple of accepted fields (read from jaxdem.scene_schema, so that a
 # field added to the parser fails here until it is documented).
 SECTIONS = {
     "scene": "SCENE_FIELDS",
@@ -57,13 +58,13 @@ def documented_fields() -> dict[str, set[str]]:
 
 
 def test_every_section_is_documented():
-    assert set(documented_fields()) == set(scene_module.SUPPORTED_SECTIONS)
-    assert set(SECTIONS) == set(scene_module.SUPPORTED_SECTIONS)
+    assert set(documented_fields()) == set(scene_schema.SUPPORTED_SECTIONS)
+    assert set(SECTIONS) == set(scene_schema.SUPPORTED_SECTIONS)
 
 
 @pytest.mark.parametrize("section", sorted(SECTIONS))
 def test_every_accepted_field_is_documented(section):
-    accepted = set(getattr(scene_module, SECTIONS[section]))
+    accepted = set(getattr(scene_schema, SECTIONS[section]))
     if section == "bolts":
         accepted.add("compression")  # documented ahead of the bolt change (issue 16)
     documented = documented_fields()[section]
@@ -76,7 +77,7 @@ def test_the_doc_states_the_conventions_and_tolerances():
     text = DOC.read_text()
     assert "trace angle" in text and "not* the geological dip" in text
     assert "compression positive" in text.lower()
-    assert scene_module.OVERLAP_TOLERANCE == 1e-5 and "1e-5 of the smaller block's size" in text
+    assert OVERLAP_TOLERANCE == 1e-5 and "1e-5 of the smaller block's size" in text
     assert "stage = 2" in text
 
 

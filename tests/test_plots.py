@@ -7,7 +7,7 @@ import matplotlib.collections
 import numpy as np
 import pytest
 
-from jaxdem import plots
+from jaxdem import plots, plots_canvas, plots_model
 from jaxdem.results import Result
 from jaxdem.state import OPEN, SLIP, STICK
 
@@ -118,13 +118,13 @@ def test_plot_blocks_without_contacts_or_motion(tmp_path):
 
 
 def test_status_text():
-    assert plots._status_text(make_result()) == "stable"
-    assert plots._status_text(make_result(moving=True)) == "UNSTABLE: block 2 moving"
+    assert plots_model._status_text(make_result()) == "stable"
+    assert plots_model._status_text(make_result(moving=True)) == "UNSTABLE: block 2 moving"
     result = make_result(moving=True)
     result.moving_blocks = [3, 7]
-    assert plots._status_text(result) == "UNSTABLE: blocks 3, 7 moving"
+    assert plots_model._status_text(result) == "UNSTABLE: blocks 3, 7 moving"
     result.status = "iteration_limit"
-    assert "iteration_limit" in plots._status_text(result)
+    assert "iteration_limit" in plots_model._status_text(result)
 
 
 @pytest.mark.parametrize(
@@ -143,7 +143,7 @@ def test_nice_magnification(size, u_max, expected):
 
 def test_largest_per_cell_keeps_one_per_cell():
     pts = np.array([[0.1, 0.1], [0.2, 0.2], [0.9, 0.9], [0.95, 0.95]])
-    keep = plots._largest_per_cell(pts, np.array([1.0, 3.0, 2.0, 0.5]), 2)
+    keep = plots_canvas._largest_per_cell(pts, np.array([1.0, 3.0, 2.0, 0.5]), 2)
     assert keep.tolist() == [False, True, True, False]
 
 
@@ -278,7 +278,7 @@ def test_stress_crosses_lengths_and_colours():
         np.array([[0.0, 2.0], [2.0, 2.0]])
     )  # 4000 kPa -> 2 m along x
     assert segments[1] == pytest.approx(np.array([[1.0, 1.75], [1.0, 2.25]]))  # 1000 kPa -> 0.5 m
-    assert colours == [plots._COMPRESSION, plots._TENSION]
+    assert colours == [plots_model._COMPRESSION, plots_model._TENSION]
 
 
 @pytest.mark.parametrize(
@@ -334,8 +334,9 @@ def test_many_block_stresses_are_thinned(tmp_path):
         stress=stress,
         centroids=c,
     )
-    keep = plots._nearest_centre_per_cell(c, np.ones(len(c), dtype=bool), plots._CROSS_GRID)
-    assert keep.sum() == plots._CROSS_GRID**2
+    keep = plots_canvas._nearest_centre_per_cell(c, np.ones(len(c), dtype=bool),
+                                                 plots_model._CROSS_GRID)
+    assert keep.sum() == plots_model._CROSS_GRID**2
     _assert_png(plots.plot_principal_stresses(result, tmp_path / "stresses.png"))
 
 
@@ -344,7 +345,7 @@ def test_many_block_stresses_are_thinned(tmp_path):
 
 @pytest.fixture
 def drawn(monkeypatch):
-    """The figures as drawn: {file name: Figure}, kept through ``plots.inspect``."""
+    """The figures as drawn: {file name: Figure}, kept through ``plots_canvas.inspect``."""
     figures: dict = {}
 
     def keep(fig, path):
@@ -360,7 +361,7 @@ def drawn(monkeypatch):
             "axes": list(fig.axes),
         }
 
-    monkeypatch.setattr(plots, "inspect", keep)
+    monkeypatch.setattr(plots_canvas, "inspect", keep)
     return figures
 
 

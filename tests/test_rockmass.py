@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from jaxdem import geometry
-from jaxdem.rockmass import RockMass, _graded_squares, generate
+from jaxdem.rockmass import RockMass, generate
+from jaxdem.rockmass_mesh import _graded_squares
 from jaxdem.scene import SceneError, parse_scene
 
 ROCK = {"E": 1.0e7, "nu": 0.25, "unit_weight": 25.0}

@@ -300,7 +300,7 @@ def test_key_block_drop_derivatives_match_statics():
 def test_large_joint_slip_is_reported_and_small_is_not():
     from scenes import slide_and_stop
 
-    from jaxdem.cli import _result_summary
+    from jaxdem.cli_summaries import _result_summary
     from jaxdem.status import LARGE_SLIP
 
     # Seed example 1: the block slides 1 m down the slope and comes to rest on a stop.
