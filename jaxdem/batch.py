@@ -29,7 +29,7 @@ import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 
 from jaxdem import model as model_mod
-from jaxdem.compile_cache import _compiled
+from jaxdem.compile_cache import _compiled, on_disk
 from jaxdem.differentiable import _monitor_values, _ParameterMap
 from jaxdem.increment import _increment
 from jaxdem.loads import _preload, _release
@@ -273,7 +273,7 @@ def _increment_fn(devices: tuple):
     so a slow sample holds back only the samples on its device.
     """
     if len(devices) == 1:
-        return jax.jit(_increment_lanes)
+        return on_disk("batch_increment")(jax.jit(_increment_lanes))
     mesh = Mesh(np.array(devices), (SAMPLE_AXIS,))
     lanes = PartitionSpec(SAMPLE_AXIS)
     sharded = jax.shard_map(_increment_lanes, mesh=mesh,

@@ -107,7 +107,8 @@ def mohr_coulomb(fn_trial, fs_trial, prop: dict, failed, active, prev=None, band
     opened = ~bonded & (fn_trial < threshold)
     fn = jnp.where(opened | ~active, 0.0, fn_trial)
     limit = jnp.maximum(c + fn * prop["tanphi"], 0.0)
-    slip = ~bonded & ~opened & (jnp.abs(fs_trial) > limit)
+    slip_at = limit if prev is None else jnp.where(prev == SLIP, limit, limit + band)
+    slip = ~bonded & ~opened & (jnp.abs(fs_trial) > slip_at)
     fs = jnp.where(opened | ~active, 0.0, jnp.where(slip, jnp.sign(fs_trial) * limit, fs_trial))
     state = jnp.where(~active | opened, OPEN, jnp.where(slip, SLIP, STICK)).astype(jnp.int32)
     return fn, fs, state
