@@ -13,10 +13,14 @@ it (0.7-1.6 s of a 2-3 s run). A function named with :func:`on_disk` is also
 kept as a serialised executable in ``programs/`` of the compilation cache
 directory, under a key made of everything that decides the program without
 tracing it: the source of the jaxdem package, the JAX and jaxlib versions, the
-backend and device, the x64 flag, the argument tree (with its static fields:
-block count, solver, flags) and shapes, the static arguments and the XLA
-options. A later process loads it without tracing. Programs with host
-callbacks (the sparse solve) cannot be stored, and are not.
+backend, device and processor, the x64 flag, the argument tree (with its
+static fields: block count, solver, flags) and shapes, the static arguments and
+the XLA options. A later process loads it without tracing. Programs with host
+callbacks (the sparse solve) cannot be stored, and are not; nor is a program
+that JAX itself loaded from its cache rather than compiled (such an executable
+serialises without its kernels, and the copy fails when called: "Function ...
+not found"), so a program compiled before this store existed is stored the
+next time it is compiled afresh.
 
 Data flow: knows nothing of the solver; the host driver (:mod:`jaxdem.solver`)
 and :mod:`jaxdem.batch` compile through it.
@@ -101,6 +105,27 @@ def on_disk(name: str):
 
 
 _SOURCE_DIGEST: list = []
+_JAX_CACHE_HITS = [0]
+
+
+def _count_jax_cache_hits(event: str, **_) -> None:
+    if event == "/jax/compilation_cache/cache_hits":
+        _JAX_CACHE_HITS[0] += 1
+
+
+jax.monitoring.register_event_listener(_count_jax_cache_hits)
+
+
+def _processor() -> str:
+    """The processor's model and features (a program compiled for one may not run on another)."""
+    try:
+        info = Path("/proc/cpuinfo").read_text().splitlines()
+    except OSError:
+        import platform
+
+        return platform.processor() or platform.machine()
+    keep = [line for line in info if line.startswith(("model name", "flags", "Features"))]
+    return hashlib.sha256("\n".join(sorted(set(keep))).encode()).hexdigest()
 
 
 def _source_digest() -> str:
@@ -128,7 +153,7 @@ def _disk_key(name, tree, leaves, static, options) -> str:
     from jax._src.lib import version as jaxlib_version
 
     parts = (name, _source_digest(), jax.__version__, str(jaxlib_version), device.platform,
-             device.device_kind, bool(jax.config.jax_enable_x64), str(tree),
+             device.device_kind, _processor(), bool(jax.config.jax_enable_x64), str(tree),
              tuple((tuple(x.shape), str(x.dtype)) for x in leaves),
              tuple(sorted(static.items())), tuple(sorted(options.items())))
     return hashlib.sha256(repr(parts).encode()).hexdigest()
@@ -199,8 +224,9 @@ def _compiled(fn, *args, quick: bool = False, **static):
     if compiled is None:
         lowered = fn.lower(*args, **static)
         t1 = time.perf_counter()
+        hits = _JAX_CACHE_HITS[0]
         compiled = _xla_compile(lowered, quick)
-        if path is not None:
+        if path is not None and _JAX_CACHE_HITS[0] == hits:
             _store_program(path, compiled)
     COMPILE_TIMES["lower_s"] += t1 - t0
     COMPILE_TIMES["compile_s"] += time.perf_counter() - t1
