@@ -108,7 +108,9 @@ def broad_phase(model: Model, verts: jax.Array, capacity: int, alive: jax.Array 
     centre = 0.5 * (box[:, :2] + box[:, 2:])
     origin = jnp.min(jnp.where(is_big[:, None], jnp.inf, centre), axis=0)
     cxy = jnp.clip(jnp.floor((centre - origin) / cell).astype(jnp.int32), 0, 2**15 - 2) + 1
-    key = jnp.where(is_big, -1, cxy[:, 0] * 2**16 + cxy[:, 1])
+    # Dead blocks (excavated, or padding of a size class) take no room in a cell.
+    hashed = ~is_big & alive
+    key = jnp.where(hashed, cxy[:, 0] * 2**16 + cxy[:, 1], -1)
     order = jnp.argsort(key)
     skey = key[order]
     cap = model.cell_capacity
@@ -116,7 +118,7 @@ def broad_phase(model: Model, verts: jax.Array, capacity: int, alive: jax.Array 
     nkey = (cxy[:, None, 0] + offsets[None, :, 0]) * 2**16 + (cxy[:, None, 1] + offsets[None, :, 1])
     start = jnp.searchsorted(skey, nkey, side="left")
     stop = jnp.searchsorted(skey, nkey, side="right")
-    cell_full = jnp.any(~is_big[:, None] & (stop - start > cap))
+    cell_full = jnp.any(hashed[:, None] & (stop - start > cap))
     slot = start[:, :, None] + jnp.arange(cap)[None, None, :]
     inside = slot < stop[:, :, None]
     j = order[jnp.clip(slot, 0, N - 1)].reshape(N, -1)

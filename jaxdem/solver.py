@@ -252,6 +252,8 @@ def scene_data(scene, layout) -> Data:
         st.water_table for st in scene.stages if st.water_table is not None]
     xs = (np.unique(np.concatenate([np.asarray(t, float)[:, 0] for t in tables]))
           if tables else np.array([0.0, 1.0]))
+    # A size class for the abscissae too (the last repeated): one program for similar tables.
+    xs = np.concatenate([xs, np.full(model_mod.bucket(len(xs)) - len(xs), xs[-1])])
     sample = lambda table: np.interp(xs, *np.asarray(table, float).T)  # noqa: E731
     return Data(
         weight=one(layout.weight), traction=one(layout.traction),
