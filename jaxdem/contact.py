@@ -76,10 +76,12 @@ def _boxes_overlap(bi, bj):
     )
 
 
-def broad_phase(model: Model, verts: jax.Array, capacity: int, alive: jax.Array | None = None):
+def broad_phase(model: Model, verts: jax.Array, capacity: int, alive: jax.Array):
     """Candidate pairs (a < b) whose grown boxes overlap and that can move.
 
-    ``alive`` (N,) masks out excavated blocks (default: all present).
+    ``alive`` (N,) masks out excavated blocks and the dead blocks that fill a
+    model up to its size class (``State.alive``: there is no default, since
+    every model past 7 blocks has some).
 
     Returns:
       pairs: (capacity, 2) int32, empty entries (N, N), sorted by a * N + b.
@@ -89,8 +91,6 @@ def broad_phase(model: Model, verts: jax.Array, capacity: int, alive: jax.Array 
     N = model.n_blocks
     box = bounding_boxes(verts, model.margin)
     ids = jnp.arange(N)
-    if alive is None:
-        alive = jnp.ones(N, bool)
     movable = model.free & alive
     if not model.use_cells:
         ok = _boxes_overlap(box[:, None, :], box[None, :, :])
