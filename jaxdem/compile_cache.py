@@ -60,12 +60,14 @@ QUICK_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
 """XLA options added on a CPU for a program that runs briefly (``quick``): LLVM's
 optimisation level 0. It compiles the increment in 0.4-0.6 of the time and runs it
 2-3 times slower (BENCHMARKS.md, "Time to answer"), which wins wherever the solve
-takes less than the compilation saves: a single solve of a small scene."""
+takes less than the compilation saves: a single solve of a small scene, or a small
+batch."""
 
 QUICK_WORK = 2_000
-"""Largest work (blocks x increments) of a single solve compiled ``quick``: the
-20 x 20 grid (401 blocks, one increment) is below, the demo (487 blocks, five
-increments, 2 s of solve at full optimisation, 6 s at level 0) above."""
+"""Largest work (blocks of the size class x increments, x samples for a batch) of a
+solve compiled ``quick``: the 20 x 20 grid (448 blocks, one increment) is below, the
+demo (487 blocks, five increments, 2 s of solve at full optimisation, 6 s at level 0)
+above. A solve with sensitivities, one of many in a back-analysis, is never quick."""
 
 
 def _options(quick: bool = False) -> dict:

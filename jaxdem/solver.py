@@ -34,8 +34,8 @@ from jaxdem.sensitivities import STATE_FLOATS, _preload_tangent, _release_with_t
 from jaxdem.state import Loads, Model, State, grow_capacity
 from jaxdem.status import Status, _imbalance
 
-__all__ = ["COMPILE_TIMES", "Data", "Status", "gravity_material", "run", "run_increment",
-           "scene_data", "solve"]
+__all__ = ["COMPILE_TIMES", "Data", "Status", "gravity_material", "increment_count", "run",
+           "run_increment", "scene_data", "solve"]
 
 
 def solve(scene, set: dict | None = None, progress=None):
@@ -96,8 +96,7 @@ def run(scene, model: Model, state: State, layout, data: Data, progress=None,
     if driver is None:
         driver = _Driver(model, state, layout, data, progress)
         if quick is None:
-            work = model.n_blocks * _increments(scene, layout, plan)
-            quick = data.p == 0 and work <= QUICK_WORK
+            quick = data.p == 0 and model.n_blocks * increment_count(scene, layout) <= QUICK_WORK
         driver.quick = quick
     d = driver
     in_situ = scene.in_situ
@@ -162,10 +161,10 @@ def run(scene, model: Model, state: State, layout, data: Data, progress=None,
     return d
 
 
-def _increments(scene, layout, plan: list[dict]) -> int:
-    """How many increments a solve of ``scene`` takes (every load step it finds equilibrium)."""
+def increment_count(scene, layout) -> int:
+    """How many increments a solve of ``scene`` takes (if each finds equilibrium)."""
     first = 1 if scene.in_situ is not None else layout.load_steps
-    return first + sum(stage["load_steps"] or layout.load_steps for stage in plan)
+    return first + sum(stage["load_steps"] or layout.load_steps for stage in _stage_plan(scene))
 
 
 def _stage_plan(scene) -> list[dict]:
