@@ -29,11 +29,13 @@ and :mod:`jaxdem.batch` compile through it.
 from __future__ import annotations
 
 import collections
+import functools
 import hashlib
 import os
 import pickle
 import tempfile
 import time
+import zlib
 from pathlib import Path
 
 import jax
@@ -106,7 +108,10 @@ def on_disk(name: str):
     return register
 
 
-_SOURCE_DIGEST: list = []
+STORED_BYTES = 256 * 2**20
+"""Most bytes of stored programs kept on disk (least recently written dropped first):
+every change of the jaxdem source makes new keys."""
+
 _JAX_CACHE_HITS = [0]
 
 
@@ -118,6 +123,7 @@ def _count_jax_cache_hits(event: str, **_) -> None:
 jax.monitoring.register_event_listener(_count_jax_cache_hits)
 
 
+@functools.lru_cache(maxsize=1)
 def _processor() -> str:
     """The processor's model and features (a program compiled for one may not run on another)."""
     try:
@@ -130,16 +136,15 @@ def _processor() -> str:
     return hashlib.sha256("\n".join(sorted(set(keep))).encode()).hexdigest()
 
 
+@functools.lru_cache(maxsize=1)
 def _source_digest() -> str:
     """sha256 of the jaxdem package's Python source (computed once a process)."""
-    if not _SOURCE_DIGEST:
-        h = hashlib.sha256()
-        root = Path(__file__).resolve().parent
-        for path in sorted(root.rglob("*.py")):
-            h.update(str(path.relative_to(root)).encode())
-            h.update(path.read_bytes())
-        _SOURCE_DIGEST.append(h.hexdigest())
-    return _SOURCE_DIGEST[0]
+    h = hashlib.sha256()
+    root = Path(__file__).resolve().parent
+    for path in sorted(root.rglob("*.py")):
+        h.update(str(path.relative_to(root)).encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()
 
 
 def _program_dir() -> Path | None:
@@ -172,7 +177,7 @@ def _load_program(path: Path):
         # A loaded program calls LAPACK (the dense LU) without a lowering that
         # would have set up its kernels first: without this it crashes.
         initialize_lapack()
-        blob, in_tree, out_tree = pickle.loads(path.read_bytes())
+        blob, in_tree, out_tree = pickle.loads(zlib.decompress(path.read_bytes()))
         return serialize_executable.deserialize_and_load(blob, in_tree, out_tree)
     except Exception:  # noqa: BLE001 - any failure: compile instead
         return None
@@ -186,13 +191,24 @@ def _store_program(path: Path, compiled) -> None:
     try:
         from jax.experimental import serialize_executable
 
-        data = pickle.dumps(serialize_executable.serialize(compiled))
+        data = zlib.compress(pickle.dumps(serialize_executable.serialize(compiled)), 1)
         path.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=path.parent, delete=False) as f:
             f.write(data)
         os.replace(f.name, path)
+        _prune(path.parent, STORED_BYTES)
     except Exception:  # noqa: BLE001 - a program that cannot be stored is compiled next time
         return
+
+
+def _prune(directory: Path, limit: int) -> None:
+    """Delete the oldest stored programs until those left take at most ``limit`` bytes."""
+    files = sorted(directory.glob("*.pkl"), key=lambda f: f.stat().st_mtime, reverse=True)
+    total = 0
+    for f in files:
+        total += f.stat().st_size
+        if total > limit:
+            f.unlink(missing_ok=True)
 
 
 def _compiled(fn, *args, quick: bool = False, **static):

@@ -102,14 +102,16 @@ def broad_phase(model: Model, verts: jax.Array, capacity: int, alive: jax.Array)
         return pairs, count, jnp.array(False)
 
     is_big = jnp.zeros(N, bool).at[model.big].set(True) if model.n_big else jnp.zeros(N, bool)
+    # The small live blocks go in cells; dead blocks (excavated, or the padding of a
+    # size class, which copies a block that may be big) neither take room in a cell
+    # nor set its size.
+    hashed = ~is_big & alive
     # Cells no smaller than the largest small block in any orientation.
-    small_r = jnp.where(is_big, 0.0, model.radius)
+    small_r = jnp.where(hashed, model.radius, 0.0)
     cell = 2.0 * jnp.max(small_r) + 2.0 * model.margin
     centre = 0.5 * (box[:, :2] + box[:, 2:])
-    origin = jnp.min(jnp.where(is_big[:, None], jnp.inf, centre), axis=0)
+    origin = jnp.min(jnp.where(hashed[:, None], centre, jnp.inf), axis=0)
     cxy = jnp.clip(jnp.floor((centre - origin) / cell).astype(jnp.int32), 0, 2**15 - 2) + 1
-    # Dead blocks (excavated, or padding of a size class) take no room in a cell.
-    hashed = ~is_big & alive
     key = jnp.where(hashed, cxy[:, 0] * 2**16 + cxy[:, 1], -1)
     order = jnp.argsort(key)
     skey = key[order]

@@ -152,6 +152,24 @@ def test_cell_broad_phase_finds_the_same_pairs_as_all_pairs():
     assert as_set(pairs_cells) == as_set(pairs_all)
 
 
+def test_dead_blocks_neither_size_nor_fill_the_cells():
+    """A model past 7 blocks carries dead copies of its first block up to its size
+    class. Here the first block is a big base (20 m wide): were its copies taken into
+    the cells, the cell would be as wide as the base, every block would share one,
+    and the cells would fill (the 20 x 20 grid grew its cell capacity from 12 to 768,
+    recompiling six times). Same pairs as the all-pairs search, and no cell full."""
+    base = [[-1.0, -1.0], [23.0, -1.0], [23.0, -0.05], [-1.0, -0.05]]
+    model, state, _ = model_mod.build(_scene([base] + _grid(22, jitter=0.1)))
+    assert model.use_cells and not bool(np.asarray(state.alive)[-1])
+    cap = 20 * model.n_blocks
+    pairs_cells, count_c, full = broad_phase(model, state.verts, cap, state.alive)
+    pairs_all, count_a, _ = broad_phase(dataclasses.replace(model, use_cells=False),
+                                        state.verts, cap, state.alive)
+    assert not bool(full) and int(count_c) == int(count_a) > 0
+    as_set = lambda p: {tuple(x) for x in np.asarray(p) if x[0] < model.n_blocks}  # noqa: E731
+    assert as_set(pairs_cells) == as_set(pairs_all)
+
+
 def test_broad_phase_flags_overflow_instead_of_truncating():
     scene = _scene(_grid(22, size=1.0))
     model, state, _ = model_mod.build(scene)
