@@ -95,7 +95,7 @@ def run_one(n: int, dtype: str, repeats: int) -> dict:
     build_s = time.perf_counter() - t0
 
     def detect(model, verts, centroid, capacity):
-        pairs, count, full = broad_phase(model, verts, capacity)
+        pairs, count, full = broad_phase(model, verts, capacity, state.alive)
         geo = narrow_phase(model, verts, centroid, pairs)
         return pairs, count, full, geo["gap"]
 

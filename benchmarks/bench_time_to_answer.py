@@ -8,7 +8,9 @@ start-up included::
 
 "cold": an empty persistent compilation cache (``JAXDEM_CACHE_DIR``, a new
 temporary folder per run); "warm": the same command again with the cache that
-a first run filled. Wall time is the median over ``--repeats`` runs. The
+a first run filled; "similar": the cache filled by another scene of the same
+size classes (the incline with a second block on the first, an 11 x 9 and a
+21 x 19 grid): a new scene of a similar size. Wall time is the median over ``--repeats`` runs. The
 phases come from the command's own marks (``$JAXDEM_PHASES``, see
 jaxdem/cli.py) and ``result.json``'s timing:
 
@@ -117,8 +119,9 @@ def _slope_frame():
     return (math.cos(a), math.sin(a)), (-math.sin(a), math.cos(a))
 
 
-def incline_scene() -> dict:
-    """1 m block on a 30 degree plane, friction 35 (tests/scenes.py's block_on_incline)."""
+def incline_scene(stacked: bool = False) -> dict:
+    """1 m block on a 30 degree plane, friction 35 (tests/scenes.py's block_on_incline);
+    ``stacked``: a second 1 m block on the first (the "similar" scene of the incline)."""
     (tx, ty), (nx, ny) = _slope_frame()
     ta = math.tan(math.radians(ALPHA))
     base = [[-1.0, -ta - 2.0], [12.0, -ta - 2.0], [12.0, 12.0 * ta], [-1.0, -ta]]
@@ -127,26 +130,29 @@ def incline_scene() -> dict:
     blk = [[p0[0], p0[1]], [p0[0] + tx, p0[1] + ty], [p0[0] + tx + nx, p0[1] + ty + ny],
            [p0[0] + nx, p0[1] + ny]]
     c = [sum(p[0] for p in blk) / 4, sum(p[1] for p in blk) / 4]
+    blocks = [{"vertices": base, "material": "rock", "fixed": True},
+              {"vertices": blk, "material": "rock"}]
+    if stacked:
+        blocks.append({"vertices": [[x + nx, y + ny] for x, y in blk], "material": "rock"})
     return {"scene": {"name": "incline 30/35"}, "solver": {"load_steps": 1},
             "materials": {"rock": dict(ROCK)}, "joints": {"base": dict(JOINT)},
-            "blocks": [{"vertices": base, "material": "rock", "fixed": True},
-                       {"vertices": blk, "material": "rock"}],
-            "monitors": [{"name": "block", "point": c}]}
+            "blocks": blocks, "monitors": [{"name": "block", "point": c}]}
 
 
-def grid_scene(n: int) -> dict:
-    """n x n square 1 m blocks on a fixed base 1 m high; monitor: the middle column's top."""
+def grid_scene(n: int, m: int | None = None) -> dict:
+    """n x n (or n columns of m) square 1 m blocks on a fixed base 1 m high; monitor: the
+    middle column's top."""
     blocks = [{"vertices": [[-1.0, -1.0], [n + 1.0, -1.0], [n + 1.0, 0.0], [-1.0, 0.0]],
                "material": "rock", "fixed": True}]
     for i in range(n):
-        for j in range(n):
+        for j in range(n if m is None else m):
             blocks.append({"vertices": [[i, j], [i + 1, j], [i + 1, j + 1], [i, j + 1]],
                            "material": "rock"})
-    mid = n // 2 + 0.5
-    return {"scene": {"name": f"{n} x {n} grid on a fixed base"}, "solver": {"load_steps": 1},
+    mid, rows = n // 2 + 0.5, n if m is None else m
+    return {"scene": {"name": f"{n} x {rows} grid on a fixed base"}, "solver": {"load_steps": 1},
             "materials": {"rock": dict(ROCK)},
             "joints": {"j": {"kn": 1.0e6, "ks": 1.0e6, "friction_deg": 35.0}},
-            "blocks": blocks, "monitors": [{"name": "top", "point": [mid, n - 0.5]}]}
+            "blocks": blocks, "monitors": [{"name": "top", "point": [mid, rows - 0.5]}]}
 
 
 def write_scenes() -> dict[str, Path]:
@@ -155,7 +161,10 @@ def write_scenes() -> dict[str, Path]:
 
     SCENES.mkdir(exist_ok=True)
     scenes = {"incline": incline_scene(), "grid10": grid_scene(10), "grid20": grid_scene(20),
-              "tunnel": scaling_scene(1.35, "auto")}
+              "tunnel": scaling_scene(1.35, "auto"),
+              # The "similar" scenes: other block counts in the same size classes.
+              "incline-similar": incline_scene(stacked=True),
+              "grid10-similar": grid_scene(11, 9), "grid20-similar": grid_scene(21, 19)}
     paths = {}
     for name, d in scenes.items():
         path = SCENES / f"{name}.toml"
@@ -255,6 +264,8 @@ def grid_error(n: int, result: dict) -> float:
 def error_of(case: str, result: dict) -> str:
     if not result.get("converged", False):
         return result.get("status", "?")
+    if case.endswith("-similar"):
+        return "-"  # a scene that only fills the cache
     if case == "incline":
         return f"{incline_error(result):.1e}" if result["stable"] else "slid!"
     if case.startswith("grid"):
@@ -310,14 +321,16 @@ def main() -> None:
     print(f"# {platform.machine()}, {os.cpu_count()} cores, jax {jax.__version__}, "
           f"python {platform.python_version()}; medians of {args.repeats} runs (s); "
           f"figures {'off' if args.no_figures else 'on'}")
-    head = f"{'case':>8} {'blocks':>6} {'cache':>5} " + " ".join(f"{c:>7}" for c in COLS)
+    head = f"{'case':>8} {'blocks':>6} {'cache':>7} " + " ".join(f"{c:>7}" for c in COLS)
     print(head + f" {'DDA':>6} {'error':>8}")
     for case in args.cases:
-        for mode in ("cold", "warm"):
+        modes = ("cold", "warm") + (("similar",) if f"{case}-similar" in paths else ())
+        for mode in modes:
             rows = []
-            warm_dir = tempfile.mkdtemp(prefix="tta-cache-") if mode == "warm" else None
-            if warm_dir:
-                run_once(case, paths.get(case), warm_dir, not args.no_figures)  # fill it
+            warm_dir = tempfile.mkdtemp(prefix="tta-cache-") if mode != "cold" else None
+            if warm_dir:  # fill it: with the same scene (warm) or a similar one
+                fill = case if mode == "warm" else f"{case}-similar"
+                run_once(fill, paths.get(fill), warm_dir, not args.no_figures)
             for _ in range(args.repeats):
                 cache = warm_dir or tempfile.mkdtemp(prefix="tta-cache-")
                 rows.append(run_once(case, paths.get(case), cache, not args.no_figures))
@@ -327,7 +340,7 @@ def main() -> None:
                 shutil.rmtree(warm_dir, ignore_errors=True)
             med = {c: statistics.median(r[c] for r in rows) for c in COLS}
             dda = f"{DDA[case]:>6.3f}" if case in DDA else f"{'-':>6}"
-            print(f"{case:>8} {rows[0]['blocks']:>6} {mode:>5} "
+            print(f"{case:>8} {rows[0]['blocks']:>6} {mode:>7} "
                   + " ".join(f"{med[c]:>7.2f}" for c in COLS) + f" {dda} {rows[0]['error']:>8}",
                   flush=True)
 

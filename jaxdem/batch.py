@@ -29,12 +29,12 @@ import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 
 from jaxdem import model as model_mod
-from jaxdem.compile_cache import _compiled
+from jaxdem.compile_cache import QUICK_WORK, _compiled, on_disk
 from jaxdem.differentiable import _monitor_values, _ParameterMap
 from jaxdem.increment import _increment
 from jaxdem.loads import _preload, _release
 from jaxdem.scene import SceneError, apply_overrides
-from jaxdem.solver import Data, run, scene_data
+from jaxdem.solver import Data, increment_count, run, scene_data
 from jaxdem.state import Loads, grow_capacity
 from jaxdem.status import Status
 
@@ -113,6 +113,8 @@ def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
     t0 = time.perf_counter()
     model, state, layout, data0, values, read = _prepared(scene, tuple(params))
     S = theta.shape[0]
+    # A small batch runs briefly: its program compiled quick (jaxdem.compile_cache).
+    quick = model.n_blocks * increment_count(scene, layout) * S <= QUICK_WORK
     per_device = _chunk_size(model, state, -(-S // n_dev), devices)
     size = chunk if chunk is not None else per_device * n_dev
     size = max(n_dev, -(-min(size, max(S, 1)) // n_dev) * n_dev)
@@ -129,7 +131,7 @@ def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
         fields, arrays = values(jnp.asarray(theta[take], jnp.float64))
         data = _batch_data(data0, arrays, size)
         cast = {k: jnp.asarray(v, model.radius.dtype) for k, v in fields.items()}
-        d = _BatchDriver(model, cast, state, layout, data, devices)
+        d = _BatchDriver(model, cast, state, layout, data, devices, quick)
         run(scene, model, state, layout, data, driver=d)
         compile_s += d.compile_s
         solve_s += d.solve_s
@@ -273,7 +275,7 @@ def _increment_fn(devices: tuple):
     so a slow sample holds back only the samples on its device.
     """
     if len(devices) == 1:
-        return jax.jit(_increment_lanes)
+        return on_disk("batch_increment")(jax.jit(_increment_lanes))
     mesh = Mesh(np.array(devices), (SAMPLE_AXIS,))
     lanes = PartitionSpec(SAMPLE_AXIS)
     sharded = jax.shard_map(_increment_lanes, mesh=mesh,
@@ -307,9 +309,9 @@ class _BatchDriver:
     or failed. Each sample's own outcome is in ``status_of``.
     """
 
-    def __init__(self, model, fields, state, layout, data: Data, devices):
+    def __init__(self, model, fields, state, layout, data: Data, devices, quick=False):
         C = data.weight.shape[0]
-        self.C, self.devices = C, tuple(devices)
+        self.C, self.devices, self.quick = C, tuple(devices), quick
         self.model, self.fields, self.layout, self.data = model, fields, layout, data
         self.state = jax.tree.map(lambda x: jnp.broadcast_to(x, (C,) + x.shape), state)
         self.status_of = np.full(C, int(Status.CONVERGED))
@@ -350,7 +352,8 @@ class _BatchDriver:
         while True:
             skip = jnp.asarray(~self.live)
             t1 = time.perf_counter()
-            fn, dt = _compiled(fn_jit, self.model, self.fields, self.state, loads, skip)
+            fn, dt = _compiled(fn_jit, self.model, self.fields, self.state, loads, skip,
+                               quick=self.quick)
             new, info = fn(self.model, self.fields, self.state, loads, skip)
             status = np.asarray(info["status"])
             self.compile_s += dt

@@ -76,10 +76,12 @@ def _boxes_overlap(bi, bj):
     )
 
 
-def broad_phase(model: Model, verts: jax.Array, capacity: int, alive: jax.Array | None = None):
+def broad_phase(model: Model, verts: jax.Array, capacity: int, alive: jax.Array):
     """Candidate pairs (a < b) whose grown boxes overlap and that can move.
 
-    ``alive`` (N,) masks out excavated blocks (default: all present).
+    ``alive`` (N,) masks out excavated blocks and the dead blocks that fill a
+    model up to its size class (``State.alive``: there is no default, since
+    every model past 7 blocks has some).
 
     Returns:
       pairs: (capacity, 2) int32, empty entries (N, N), sorted by a * N + b.
@@ -89,8 +91,6 @@ def broad_phase(model: Model, verts: jax.Array, capacity: int, alive: jax.Array 
     N = model.n_blocks
     box = bounding_boxes(verts, model.margin)
     ids = jnp.arange(N)
-    if alive is None:
-        alive = jnp.ones(N, bool)
     movable = model.free & alive
     if not model.use_cells:
         ok = _boxes_overlap(box[:, None, :], box[None, :, :])
@@ -102,13 +102,17 @@ def broad_phase(model: Model, verts: jax.Array, capacity: int, alive: jax.Array 
         return pairs, count, jnp.array(False)
 
     is_big = jnp.zeros(N, bool).at[model.big].set(True) if model.n_big else jnp.zeros(N, bool)
+    # The small live blocks go in cells; dead blocks (excavated, or the padding of a
+    # size class, which copies a block that may be big) neither take room in a cell
+    # nor set its size.
+    hashed = ~is_big & alive
     # Cells no smaller than the largest small block in any orientation.
-    small_r = jnp.where(is_big, 0.0, model.radius)
+    small_r = jnp.where(hashed, model.radius, 0.0)
     cell = 2.0 * jnp.max(small_r) + 2.0 * model.margin
     centre = 0.5 * (box[:, :2] + box[:, 2:])
-    origin = jnp.min(jnp.where(is_big[:, None], jnp.inf, centre), axis=0)
+    origin = jnp.min(jnp.where(hashed[:, None], centre, jnp.inf), axis=0)
     cxy = jnp.clip(jnp.floor((centre - origin) / cell).astype(jnp.int32), 0, 2**15 - 2) + 1
-    key = jnp.where(is_big, -1, cxy[:, 0] * 2**16 + cxy[:, 1])
+    key = jnp.where(hashed, cxy[:, 0] * 2**16 + cxy[:, 1], -1)
     order = jnp.argsort(key)
     skey = key[order]
     cap = model.cell_capacity
@@ -116,7 +120,7 @@ def broad_phase(model: Model, verts: jax.Array, capacity: int, alive: jax.Array 
     nkey = (cxy[:, None, 0] + offsets[None, :, 0]) * 2**16 + (cxy[:, None, 1] + offsets[None, :, 1])
     start = jnp.searchsorted(skey, nkey, side="left")
     stop = jnp.searchsorted(skey, nkey, side="right")
-    cell_full = jnp.any(~is_big[:, None] & (stop - start > cap))
+    cell_full = jnp.any(hashed[:, None] & (stop - start > cap))
     slot = start[:, :, None] + jnp.arange(cap)[None, None, :]
     inside = slot < stop[:, :, None]
     j = order[jnp.clip(slot, 0, N - 1)].reshape(N, -1)

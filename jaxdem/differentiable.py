@@ -165,7 +165,8 @@ class Problem:
             if want is not None and name in want:
                 found[name] = self._monitors(d)
 
-        d = run(self.scene, model, self.state, self.layout, data, stage_end=stage_end)
+        # One solve of many: its programs keep the full optimisation.
+        d = run(self.scene, model, self.state, self.layout, data, stage_end=stage_end, quick=False)
         info = dict(status=d.status, approximate=d.approximate)
         if d.status != Status.CONVERGED:
             return np.full(n, np.nan), (np.full((n, p), np.nan) if jacobian else None), info

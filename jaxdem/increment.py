@@ -35,6 +35,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from jaxdem.compile_cache import on_disk
 from jaxdem.kinematics import _rotate, _travel
 from jaxdem.sensitivities import SNAPSHOT_FLOATS, _substep_tangent
 from jaxdem.state import Loads, Model, State
@@ -42,6 +43,7 @@ from jaxdem.status import IMBALANCE_FACTOR, OVERLAP_TOL, STRENGTH_TOL, Status, _
 from jaxdem.substep import _substep
 
 
+@on_disk("increment")
 @jax.jit
 def increment(model: Model, state: State, loads: Loads):
     """One load increment: geometry sub-steps until equilibrium under ``loads``.
@@ -55,6 +57,7 @@ def increment(model: Model, state: State, loads: Loads):
     return _increment(model, state, loads)
 
 
+@on_disk("increment_tangent")
 @jax.jit
 def increment_tangent(model: Model, state: State, loads: Loads, tangents: dict):
     """:func:`increment` with forward-mode sensitivities of the state to p parameters.

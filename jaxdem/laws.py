@@ -84,11 +84,15 @@ def mohr_coulomb(fn_trial, fs_trial, prop: dict, failed, active, prev=None, band
       failed: the slot has lost cohesion and tensile strength.
       active: the slot exists.
       prev: the slot's previous state, for the hysteresis band (optional).
-      band: force (kN/m) by which the trial force must pass the opening
-        threshold to change a slot between open and closed. Within the band
-        either state is within ``band`` of equilibrium, so a band below the
-        residual tolerance never changes a converged answer; it stops slots
-        at zero force from flipping at every iteration.
+      band: force (kN/m) by which the trial force must pass a threshold to
+        change a slot's state: the opening threshold (open and closed), and
+        the strength (a stuck slot slips only beyond limit + band; a slipping
+        one sticks again below the limit). Within the band either state is
+        within ``band`` of equilibrium, so a band below the residual
+        tolerance never changes a converged answer; it stops slots at zero
+        force from flipping at every iteration (a cohesionless joint without
+        normal force has zero strength, and its round-off shear would make it
+        slip).
     Returns:
       fn, fs, state (OPEN, STICK or SLIP). A contact opens when its tension
       exceeds its tensile strength (zero once failed); it slips when
@@ -107,21 +111,23 @@ def mohr_coulomb(fn_trial, fs_trial, prop: dict, failed, active, prev=None, band
     opened = ~bonded & (fn_trial < threshold)
     fn = jnp.where(opened | ~active, 0.0, fn_trial)
     limit = jnp.maximum(c + fn * prop["tanphi"], 0.0)
-    slip = ~bonded & ~opened & (jnp.abs(fs_trial) > limit)
+    slip_at = limit if prev is None else jnp.where(prev == SLIP, limit, limit + band)
+    slip = ~bonded & ~opened & (jnp.abs(fs_trial) > slip_at)
     fs = jnp.where(opened | ~active, 0.0, jnp.where(slip, jnp.sign(fs_trial) * limit, fs_trial))
     state = jnp.where(~active | opened, OPEN, jnp.where(slip, SLIP, STICK)).astype(jnp.int32)
     return fn, fs, state
 
 
-def forces_in_state(fn_trial, fs_trial, prop: dict, failed, state):
+def forces_in_state(fn_trial, fs_trial, prop: dict, failed, state, band=0.0):
     """Spring forces (kN/m) with a given state: a frozen slot's, and the held states' tangent.
 
     OPEN carries nothing; SLIP carries fn_trial and the Mohr-Coulomb limit
     |fs| = c * share + fn tan(phi) (c zero once failed) in the direction of
     the trial force; STICK carries the trial forces, but a stuck slot that is
-    not bonded never carries more shear than that limit: there it carries the
-    limit, as :func:`mohr_coulomb` would. Where the state is the one
-    :func:`mohr_coulomb` gives, so are the forces and their derivatives. The
+    not bonded never carries more shear than that limit (plus ``band``, the
+    hysteresis of :func:`mohr_coulomb`): there it carries the limit, as
+    :func:`mohr_coulomb` would. Where the state is the one :func:`mohr_coulomb`
+    gives with the same band, so are the forces and their derivatives. The
     normal force of a closed slot is fn_trial whatever its sign (a cap would
     break that agreement within the open/close hysteresis band): a slot held
     closed in tension beyond the cut-off is the caller's to refuse (the
@@ -132,6 +138,6 @@ def forces_in_state(fn_trial, fs_trial, prop: dict, failed, state):
     c = jnp.where(failed, 0.0, prop["cohesion"])
     fn = jnp.where(state == OPEN, 0.0, fn_trial)
     limit = jnp.maximum(c + fn * prop["tanphi"], 0.0)
-    capped = (state == SLIP) | (~bonded & (jnp.abs(fs_trial) > limit))
+    capped = (state == SLIP) | (~bonded & (jnp.abs(fs_trial) > limit + band))
     fs = jnp.where(state == OPEN, 0.0, jnp.where(capped, jnp.sign(fs_trial) * limit, fs_trial))
     return fn, fs

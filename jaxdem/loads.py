@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxdem.compile_cache import on_disk
 from jaxdem.contact import broad_phase, narrow_phase
 from jaxdem.kinematics import _scatter, b_rows, point_row
 from jaxdem.laws import slot_properties
@@ -59,6 +60,7 @@ def water_force(model: Model, geo, prop, water_x, water_y, scale=1.0):
     return jnp.where(on_joint, scale * model.gamma_w * jnp.maximum(head, 0.0) * geo["share"], 0.0)
 
 
+@on_disk("preload")
 @functools.partial(jax.jit, static_argnames=("mode",))
 def _preload(model: Model, state: State, loads: Loads, sigma, surface_y, gamma, k0, mode: str):
     """Contacts at the start with the forces of the in-situ stress field (zero displacement).

@@ -22,6 +22,10 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 DPI = 150
+PNG_OPTIONS = {"compress_level": 1}
+"""zlib level of the PNGs: level 1 writes them in about a fifth of the time of the
+default 6, for files about 1.3 times larger (a figure is drawn after the answer,
+but still within the command's time)."""
 
 
 def _figure(figsize: tuple[float, float]) -> tuple[Figure, Any]:
@@ -40,7 +44,7 @@ def _save(fig: Figure, path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
-        fig.savefig(path, dpi=DPI, bbox_inches="tight")
+        fig.savefig(path, dpi=DPI, bbox_inches="tight", pil_kwargs=PNG_OPTIONS)
         if inspect is not None:
             inspect(fig, path)
     finally:

@@ -25,7 +25,7 @@ from jaxdem.linsolve import _assemble_dense, _host_matrix
 from jaxdem.loads import _preload, _release
 from jaxdem.springs import _evaluate, _stiffness_terms, _Sub, _with_slip_coupling
 from jaxdem.state import Loads, Model, State
-from jaxdem.substep import _commit, _newton_and_commit, _prepare
+from jaxdem.substep import _commit, _newton_and_commit, _prepare, _scales
 
 # Model fields that scene parameters change smoothly (see jaxdem.differentiable).
 SMOOTH_MODEL = ("joint_kn", "joint_ks", "joint_c", "joint_t", "joint_tanphi", "kn_inv", "ks_inv",
@@ -156,7 +156,10 @@ def _substep_tangent(model: Model, state: State, loads: Loads, dmodel, dstate, d
         sb = with_floats(fl)
         mdl = dataclasses.replace(m, free=sb.free)
         s = dataclasses.replace(state, **sf)
-        ev = _evaluate(mdl, sb, x, all_held, held, held, 0.0)
+        # The held states with the forward's band: a slot stuck within the band
+        # above its strength carries its trial force there, and here too.
+        band = jax.lax.stop_gradient(_scales(mdl, sb)[1])
+        ev = _evaluate(mdl, sb, x, all_held, held, held, band)
         new, _, snap = _commit(mdl, s, sb, pairs, x, ev)
         return (ev["R"], _fields(new, STATE_FLOATS), {k: snap[k] for k in SNAPSHOT_FLOATS}), ev
 

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdem import model as model_mod
-from jaxdem.compile_cache import COMPILE_TIMES, _compiled
+from jaxdem.compile_cache import COMPILE_TIMES, QUICK_WORK, _compiled
 from jaxdem.increment import increment, increment_tangent
 from jaxdem.loads import _preload, _release_jit, make_loads
 from jaxdem.results import build_result, monitor_values
@@ -34,8 +34,8 @@ from jaxdem.sensitivities import STATE_FLOATS, _preload_tangent, _release_with_t
 from jaxdem.state import Loads, Model, State, grow_capacity
 from jaxdem.status import Status, _imbalance
 
-__all__ = ["COMPILE_TIMES", "Data", "Status", "gravity_material", "run", "run_increment",
-           "scene_data", "solve"]
+__all__ = ["COMPILE_TIMES", "Data", "Status", "gravity_material", "increment_count", "run",
+           "run_increment", "scene_data", "solve"]
 
 
 def solve(scene, set: dict | None = None, progress=None):
@@ -78,7 +78,7 @@ def solve(scene, set: dict | None = None, progress=None):
 
 
 def run(scene, model: Model, state: State, layout, data: Data, progress=None,
-        stage_end=None, driver=None) -> _Driver:
+        stage_end=None, driver=None, quick: bool | None = None) -> _Driver:
     """Run a built scene through its loading and stages; returns the finished driver.
 
     ``data`` gives the loads (and, with p > 0, their derivatives, which the
@@ -86,14 +86,23 @@ def run(scene, model: Model, state: State, layout, data: Data, progress=None,
     with the driver and the stage name at the end of each stage ("initial"
     for the state before the first stage). ``driver``, if given, replaces the
     single-solve :class:`_Driver` (``jaxdem.batch`` passes one that solves a
-    batch of samples, with ``data`` stacked over the samples).
+    batch of samples, with ``data`` stacked over the samples). ``quick``: compile
+    the programs for a brief run (:data:`jaxdem.compile_cache.QUICK_COMPILER_OPTIONS`);
+    None decides by the size of the solve: a single small solve (blocks x
+    increments up to :data:`jaxdem.compile_cache.QUICK_WORK`, no sensitivities).
+    A caller that solves the same scene many times passes False.
     """
-    d = driver if driver is not None else _Driver(model, state, layout, data, progress)
+    plan = _stage_plan(scene)
+    if driver is None:
+        driver = _Driver(model, state, layout, data, progress)
+        if quick is None:
+            quick = data.p == 0 and model.n_blocks * increment_count(scene, layout) <= QUICK_WORK
+        driver.quick = quick
+    d = driver
     in_situ = scene.in_situ
     N, D = model.n_blocks, model.ndof
     zero = np.zeros((1 + data.p, N, D))
     pending = zero  # applied over the first stage (uniform in-situ mode)
-    plan = _stage_plan(scene)
     if in_situ is None and not plan:
         # Without in-situ stress and with nothing after the loading (no stage, no
         # excavation, no support), a bolt is part of the scene the loading builds: it
@@ -150,6 +159,12 @@ def run(scene, model: Model, state: State, layout, data: Data, progress=None,
         if stage_end is not None and d.status == Status.CONVERGED:
             stage_end(d, stage["name"])
     return d
+
+
+def increment_count(scene, layout) -> int:
+    """How many increments a solve of ``scene`` takes (if each finds equilibrium)."""
+    first = 1 if scene.in_situ is not None else layout.load_steps
+    return first + sum(stage["load_steps"] or layout.load_steps for stage in _stage_plan(scene))
 
 
 def _stage_plan(scene) -> list[dict]:
@@ -236,6 +251,8 @@ def scene_data(scene, layout) -> Data:
         st.water_table for st in scene.stages if st.water_table is not None]
     xs = (np.unique(np.concatenate([np.asarray(t, float)[:, 0] for t in tables]))
           if tables else np.array([0.0, 1.0]))
+    # A size class for the abscissae too (the last repeated): one program for similar tables.
+    xs = np.concatenate([xs, np.full(model_mod.bucket(len(xs)) - len(xs), xs[-1])])
     sample = lambda table: np.interp(xs, *np.asarray(table, float).T)  # noqa: E731
     return Data(
         weight=one(layout.weight), traction=one(layout.traction),
@@ -265,6 +282,7 @@ class _Driver:
         self.bolt_active = np.zeros(model.n_bolts, bool)
         self.water_y = data.water_y
         self.approximate = False
+        self.quick = False  # programs compiled quick (compile_cache.QUICK_COMPILER_OPTIONS)
         p = data.p
         self.dstate = None if p == 0 else {
             k: jnp.zeros((p,) + getattr(state, k).shape, getattr(state, k).dtype)
@@ -285,7 +303,8 @@ class _Driver:
         tangents = None if dloads is None else dict(model=self.data.dmodel, state=self.dstate,
                                                     loads=dloads)
         t1 = time.perf_counter()
-        self.model, self.state, info, dt = run_increment(self.model, self.state, loads, tangents)
+        self.model, self.state, info, dt = run_increment(self.model, self.state, loads, tangents,
+                                                         self.quick)
         jax.block_until_ready(self.state.verts)
         self.compile_s += dt
         self.solve_s += time.perf_counter() - t1 - dt
@@ -336,7 +355,8 @@ class _Driver:
         loads, dloads = self.loads(base)
         while True:
             if self.dstate is None:
-                pre, dt = _compiled(_preload, self.model, self.state, loads, *args, mode=mode)
+                pre, dt = _compiled(_preload, self.model, self.state, loads, *args, mode=mode,
+                                    quick=self.quick)
                 self.compile_s += dt
                 st, overflow = pre(self.model, self.state, loads, *args)
             else:
@@ -349,18 +369,20 @@ class _Driver:
         self.state = st
 
 
-def run_increment(model: Model, state: State, loads: Loads, tangents: dict | None = None):
+def run_increment(model: Model, state: State, loads: Loads, tangents: dict | None = None,
+                  quick: bool = False):
     """One increment with capacity growth: on overflow, grow and redo from ``state``.
 
     Returns (model, state, info, compile_s): the model changes only when a
     grid cell capacity grew. Growing recompiles; nothing is ever truncated.
     With ``tangents`` (see :func:`jaxdem.increment.increment_tangent`) the state's derivatives
-    are carried along (``info["dstate"]``).
+    are carried along (``info["dstate"]``). ``quick``: compile for a brief run
+    (:func:`jaxdem.compile_cache._compiled`).
     """
     compile_s = 0.0
     while True:
         if tangents is None:
-            fn, dt = _compiled(increment, model, state, loads)
+            fn, dt = _compiled(increment, model, state, loads, quick=quick)
             new, info = fn(model, state, loads)
         else:
             fn, dt = _compiled(increment_tangent, model, state, loads, tangents)

@@ -132,7 +132,7 @@ def _evaluate(model: Model, sub: _Sub, du, frozen, frozen_state, prev, band):
     fs_trial = sub.fs_old + sub.prop["ks"] * ds
     active = geo["active"]
     fn_l, fs_l, st_l = mohr_coulomb(fn_trial, fs_trial, sub.prop, sub.failed, active, prev, band)
-    fn_f, fs_f = forces_in_state(fn_trial, fs_trial, sub.prop, sub.failed, frozen_state)
+    fn_f, fs_f = forces_in_state(fn_trial, fs_trial, sub.prop, sub.failed, frozen_state, band)
     fn = jnp.where(frozen, fn_f, fn_l)
     fs = jnp.where(frozen, fs_f, fs_l)
     st = jnp.where(frozen, frozen_state, st_l)

@@ -53,6 +53,13 @@ def _pytree(data: list[str], meta: list[str]):
 class Model:
     """Constant data of a solve (host-built, device-resident).
 
+    N, V and J are size classes (:func:`jaxdem.model.block_bucket`,
+    :func:`jaxdem.model.bucket`), so that scenes of similar size share their
+    compiled programs: the rock blocks come first, then the walls, then at least
+    one dead block (a copy of block 0, never alive in the State, never free, in
+    no contact); vertices past a block's own repeat its first; joint rows past
+    the scene's are unused.
+
     Attributes:
       nv: (N,) int32 vertex count of each block.
       vmask: (N, V) bool, real vertices.
@@ -69,6 +76,7 @@ class Model:
       joint_tanphi: (J,) tan of the friction angle.
       big: (n_big,) int32, blocks paired with every block in the broad phase
         (walls and blocks much larger than the median); the rest go in cells.
+        Filled up to its size class with the last (dead) block.
       pseudo_mass: (N, D) diagonal regularisation eps * k_ref * (1, 1, r_g^2, ...):
         changes the path of the iteration, never a converged equilibrium.
       f_ref: scalar kN/m, force scale of the convergence test.

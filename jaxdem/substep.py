@@ -58,6 +58,27 @@ from jaxdem.springs import (
 from jaxdem.state import OPEN, SLIP, STICK, Loads, Model, State
 
 
+def _scales(model: Model, sub: _Sub):
+    """Force scale (N,) of each block's equilibrium test and hysteresis band (S,) of each slot.
+
+    The scale (:func:`jaxdem.springs._block_scale`) is a block's load or the
+    largest force on it (an in-situ state has large contact forces and no net
+    load). No block is asked to balance below 1000 round-offs of the scene's
+    largest force scale (nor is a scene without loads below 1e-3 f_ref), which
+    is all that a block without load or contacts has. The band by which a
+    slot's trial force must pass a threshold of the law to change its state
+    (open/closed, stuck/slipping: :func:`jaxdem.laws.mohr_coulomb`) is a tenth
+    of the tolerance of the smaller free block it touches.
+    """
+    s0 = _block_scale(model, sub)
+    biggest = jnp.maximum(jnp.max(jnp.where(sub.free, s0, 0.0)), model.f_ref * 1e-3)
+    floor = 1e3 * jnp.finfo(sub.load.dtype).eps * biggest
+    s0 = jnp.maximum(s0, floor)
+    s_slot = jnp.minimum(jnp.where(sub.free, s0, jnp.inf)[sub.geo["a"]],
+                         jnp.where(sub.free, s0, jnp.inf)[sub.geo["b"]])
+    return s0, 0.1 * model.tol * jnp.where(jnp.isfinite(s_slot), s_slot, biggest)
+
+
 def _newton(model: Model, sub: _Sub, st0):
     """Newton iteration on du at fixed geometry (one sub-step).
 
@@ -67,20 +88,7 @@ def _newton(model: Model, sub: _Sub, st0):
     S = st0.shape[0]
     N = model.n_blocks
     dtype = sub.load.dtype
-    # Force scale of the convergence test, per block (_block_scale): its load
-    # or the largest force on it (an in-situ state has large contact forces
-    # and no net load). No block is asked to balance below 1000 round-offs of
-    # the scene's largest force scale (nor is a scene without loads below
-    # 1e-3 f_ref), which is all that a block without load or contacts has.
-    s0 = _block_scale(model, sub)
-    biggest = jnp.maximum(jnp.max(jnp.where(sub.free, s0, 0.0)), model.f_ref * 1e-3)
-    floor = 1e3 * jnp.finfo(dtype).eps * biggest
-    s0 = jnp.maximum(s0, floor)
-    # Open/close hysteresis of a slot: a tenth of the tolerance of the
-    # smaller free block it touches.
-    s_slot = jnp.minimum(jnp.where(sub.free, s0, jnp.inf)[sub.geo["a"]],
-                         jnp.where(sub.free, s0, jnp.inf)[sub.geo["b"]])
-    band = 0.1 * model.tol * jnp.where(jnp.isfinite(s_slot), s_slot, biggest)
+    s0, band = _scales(model, sub)
     zeros_s = jnp.zeros(S, jnp.int32)
     # A small block moves at most a quarter of its radius per sub-step.
     step = jnp.minimum(model.step_length, 0.25 * model.radius)

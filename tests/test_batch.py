@@ -3,11 +3,13 @@ shape, capacities in buckets, sharding over devices, the persistent compilation 
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from hypothesis import given
@@ -61,8 +63,11 @@ def test_samples_compile_once(tunnel):
 
 
 def test_back_analysis_iterations_compile_once(tunnel):
+    """The first solve with sensitivities and the first plain solve compile their
+    programs; the iterations after them, at other values, compile nothing."""
     problem = Problem(tunnel, ["joints.set1.kn", "joints.set1.ks"])
     problem.evaluate(problem.theta0 * 1.1, jacobian=True)
+    problem.evaluate(problem.theta0 * 1.2)
     compiled = len(compile_cache._COMPILED)
     problem.evaluate(problem.theta0 * 0.8, jacobian=True)
     problem.evaluate(problem.theta0 * 1.3)
@@ -158,27 +163,59 @@ def test_several_cpu_devices_take_one_sample_each():
 
 def test_persistent_compilation_cache(tmp_path):
     """A second ``jaxdem run`` of a scene loads its compiled increment from the cache
-    instead of compiling it; JAXDEM_COMPILATION_CACHE=0 writes no cache. The XLA part
-    is what the cache saves (tracing and lowering run in every process), read from the
+    instead of tracing and compiling it, and gives the same answer bitwise;
+    JAXDEM_COMPILATION_CACHE=0 writes no cache. The increment is stored as a
+    serialised program (``programs/`` in the cache), so neither its XLA
+    compilation nor its tracing and lowering run again: both are read from the
     phases the command line records ($JAXDEM_PHASES)."""
     scene = ROOT / "examples" / "block_on_incline.toml"
 
     def run(out, env):
         phases = out.parent / f"{out.name}-phases.json"
-        subprocess.run([sys.executable, "-m", "jaxdem", "run", str(scene), "--out", str(out)],
-                       check=True, capture_output=True,
+        subprocess.run([sys.executable, "-m", "jaxdem", "run", str(scene), "--out", str(out),
+                        "--no-figures"], check=True, capture_output=True,
                        env={**os.environ, **env, "JAXDEM_PHASES": str(phases)}, cwd=ROOT,
                        timeout=600)
-        return json.loads(phases.read_text())["increment"]["compile_s"]
+        result = json.loads((out / "result.json").read_text())
+        result.pop("timing")
+        return json.loads(phases.read_text())["increment"], result
 
     off = tmp_path / "off"
     run(tmp_path / "r0", {"JAXDEM_CACHE_DIR": str(off), "JAXDEM_COMPILATION_CACHE": "0"})
     assert not off.exists() or not any(off.iterdir())
     cache = tmp_path / "cache"
-    first = run(tmp_path / "r1", {"JAXDEM_CACHE_DIR": str(cache)})
-    assert any(cache.iterdir())
-    second = run(tmp_path / "r2", {"JAXDEM_CACHE_DIR": str(cache)})
-    assert second < 0.3 * first, (first, second)
+    first, answer = run(tmp_path / "r1", {"JAXDEM_CACHE_DIR": str(cache)})
+    assert any((cache / "programs").iterdir())
+    second, again = run(tmp_path / "r2", {"JAXDEM_CACHE_DIR": str(cache)})
+    assert second["compile_s"] < 0.3 * first["compile_s"], (first, second)
+    assert second["lower_s"] == 0.0 < first["lower_s"], (first, second)
+    assert again == answer
+    # A program that JAX loads from its own cache is not stored (its copy would
+    # lack its kernels and fail when called): the next run traces, loads from
+    # JAX's cache again, and answers the same.
+    shutil.rmtree(cache / "programs")
+    run(tmp_path / "r3", {"JAXDEM_CACHE_DIR": str(cache)})
+    assert not (cache / "programs").exists() or not any((cache / "programs").iterdir())
+    assert run(tmp_path / "r4", {"JAXDEM_CACHE_DIR": str(cache)})[1] == answer
+
+
+def test_a_stored_program_is_found_only_for_its_own_key():
+    """The stored programs' key holds what decides a program without tracing it: the
+    argument tree with its static fields (here the linear solver), the shapes, the
+    static arguments and the XLA options. A change of any gives another file."""
+    from jaxdem import compile_cache
+
+    x = {"a": jnp.zeros(3)}
+    leaves, tree = jax.tree.flatten(x)
+    keys = {compile_cache._disk_key("f", tree, leaves, {}, {}),
+            compile_cache._disk_key("g", tree, leaves, {}, {}),
+            compile_cache._disk_key("f", jax.tree.flatten({"b": jnp.zeros(3)})[1], leaves, {}, {}),
+            compile_cache._disk_key("f", tree, [jnp.zeros(4)], {}, {}),
+            compile_cache._disk_key("f", tree, [jnp.zeros(3, jnp.int32)], {}, {}),
+            compile_cache._disk_key("f", tree, leaves, {"mode": "gravity"}, {}),
+            compile_cache._disk_key("f", tree, leaves, {}, {"xla_backend_optimization_level": 0})}
+    assert len(keys) == 7
+    assert compile_cache._disk_key("f", tree, leaves, {}, {}) in keys  # and it is stable
 
 
 def test_float32_batch_matches_float64(tunnel):

@@ -46,7 +46,7 @@ def _rotated_square(cx, cy, angle_deg, side=1.0):
 
 def _slots(blocks, **solver):
     model, state, _ = model_mod.build(_scene(blocks, **solver))
-    pairs, count, _ = broad_phase(model, state.verts, state.capacity)
+    pairs, count, _ = broad_phase(model, state.verts, state.capacity, state.alive)
     geo = narrow_phase(model, state.verts, state.centroid, pairs)
     act = np.asarray(geo["active"])
     return {k: np.asarray(v)[act] for k, v in geo.items()}, model
@@ -112,7 +112,7 @@ def test_overlapping_blocks_have_negative_gap_on_the_right_face():
     # one (anti-parallel), not the vertical sides the corners also lie on.
     model, state, _ = model_mod.build(_scene([_square(0, 0), _square(0, 1)]))
     verts = state.verts.at[1, :, 1].add(-0.001)  # scenes refuse overlaps: move it here
-    pairs, _, _ = broad_phase(model, verts, state.capacity)
+    pairs, _, _ = broad_phase(model, verts, state.capacity, state.alive)
     geo = narrow_phase(model, verts, state.centroid.at[1, 1].add(-0.001), pairs)
     act = np.asarray(geo["active"])
     g = {k: np.asarray(v)[act] for k, v in geo.items()}
@@ -144,9 +144,27 @@ def test_cell_broad_phase_finds_the_same_pairs_as_all_pairs():
     model, state, _ = model_mod.build(scene)
     assert model.use_cells
     cap = 20 * model.n_blocks
-    pairs_cells, count_c, full = broad_phase(model, state.verts, cap)
+    pairs_cells, count_c, full = broad_phase(model, state.verts, cap, state.alive)
     pairs_all, count_a, _ = broad_phase(dataclasses.replace(model, use_cells=False),
-                                        state.verts, cap)
+                                        state.verts, cap, state.alive)
+    assert not bool(full) and int(count_c) == int(count_a) > 0
+    as_set = lambda p: {tuple(x) for x in np.asarray(p) if x[0] < model.n_blocks}  # noqa: E731
+    assert as_set(pairs_cells) == as_set(pairs_all)
+
+
+def test_dead_blocks_neither_size_nor_fill_the_cells():
+    """A model past 7 blocks carries dead copies of its first block up to its size
+    class. Here the first block is a big base (20 m wide): were its copies taken into
+    the cells, the cell would be as wide as the base, every block would share one,
+    and the cells would fill (the 20 x 20 grid grew its cell capacity from 12 to 768,
+    recompiling six times). Same pairs as the all-pairs search, and no cell full."""
+    base = [[-1.0, -1.0], [23.0, -1.0], [23.0, -0.05], [-1.0, -0.05]]
+    model, state, _ = model_mod.build(_scene([base] + _grid(22, jitter=0.1)))
+    assert model.use_cells and not bool(np.asarray(state.alive)[-1])
+    cap = 20 * model.n_blocks
+    pairs_cells, count_c, full = broad_phase(model, state.verts, cap, state.alive)
+    pairs_all, count_a, _ = broad_phase(dataclasses.replace(model, use_cells=False),
+                                        state.verts, cap, state.alive)
     assert not bool(full) and int(count_c) == int(count_a) > 0
     as_set = lambda p: {tuple(x) for x in np.asarray(p) if x[0] < model.n_blocks}  # noqa: E731
     assert as_set(pairs_cells) == as_set(pairs_all)
@@ -155,16 +173,16 @@ def test_cell_broad_phase_finds_the_same_pairs_as_all_pairs():
 def test_broad_phase_flags_overflow_instead_of_truncating():
     scene = _scene(_grid(22, size=1.0))
     model, state, _ = model_mod.build(scene)
-    _, count, _ = broad_phase(model, state.verts, 10)
+    _, count, _ = broad_phase(model, state.verts, 10, state.alive)
     assert int(count) > 10
     tight = dataclasses.replace(model, cell_capacity=1)
-    _, _, full = broad_phase(tight, state.verts, 10 * model.n_blocks)
+    _, _, full = broad_phase(tight, state.verts, 10 * model.n_blocks, state.alive)
     assert bool(full)
 
 
 def test_narrow_phase_jit_matches_eager_and_vmaps_over_positions():
     model, state, _ = model_mod.build(_scene([_square(0, 0, 2, 1), _square(0.3, 1, 1, 1)]))
-    pairs, _, _ = broad_phase(model, state.verts, state.capacity)
+    pairs, _, _ = broad_phase(model, state.verts, state.capacity, state.alive)
     eager = narrow_phase(model, state.verts, state.centroid, pairs)
     jitted = jax.jit(narrow_phase)(model, state.verts, state.centroid, pairs)
     for k in eager:
@@ -183,7 +201,7 @@ def test_narrow_phase_jit_matches_eager_and_vmaps_over_positions():
 def test_gap_gradient_matches_finite_differences():
     """d(gap)/d(vertical position of the upper block) = 1 for a horizontal face."""
     model, state, _ = model_mod.build(_scene([_square(0, 0, 2, 1), _square(0.3, 1, 1, 1)]))
-    pairs, _, _ = broad_phase(model, state.verts, state.capacity)
+    pairs, _, _ = broad_phase(model, state.verts, state.capacity, state.alive)
     act = np.asarray(narrow_phase(model, state.verts, state.centroid, pairs)["active"])
 
     def total_gap(dy):

@@ -181,9 +181,26 @@ def test_compiled_programs_are_bounded(monkeypatch):
     monkeypatch.setattr(compile_cache, "MAX_COMPILED", 2)
     monkeypatch.setattr(compile_cache, "_COMPILED", type(compile_cache._COMPILED)())
     first = jaxdem.solve(parse_scene(stack(1)))
-    for n in (2, 3):
+    for n in (8, 12):  # 9 and 13 blocks: size classes 10 and 14, not the 8 of stack(1)
         jaxdem.solve(parse_scene(stack(n)))
         assert len(compile_cache._COMPILED) <= 2
     again = jaxdem.solve(parse_scene(stack(1)))
     assert again.converged and len(compile_cache._COMPILED) <= 2
     assert again.monitors == first.monitors
+
+
+def test_scenes_of_one_size_class_share_their_compiled_increment(monkeypatch):
+    """Block counts come in size classes (model.block_bucket; dead blocks fill the
+    rest), so a second scene of a similar size runs the first one's program: no new
+    compilation. Each still settles as its own stack (tests/verification/test_stack.py):
+    the dead blocks change nothing."""
+    monkeypatch.setattr(compile_cache, "_COMPILED", type(compile_cache._COMPILED)())
+    assert model_mod.block_bucket(3 + 2) == model_mod.block_bucket(6 + 2)
+    three = jaxdem.solve(parse_scene(stack(3)))
+    six = jaxdem.solve(parse_scene(stack(6)))
+    assert len(compile_cache._COMPILED) == 1
+    assert six.timing["compile_s"] == 0.0 < three.timing["compile_s"]
+    # The top settles by sum_k W (n - k) / (k_eq Le): six blocks 7 times three's
+    # (sum of 1..6 = 21 against 1..3 = 6, with the base joint's h = 0.5 m alike).
+    uy3, uy6 = three.monitors["top"]["displacement"][1], six.monitors["top"]["displacement"][1]
+    assert uy6 / uy3 == pytest.approx(21 / 6, rel=1e-5)

@@ -58,8 +58,11 @@ def test_patch_test_gives_the_plane_strain_poisson_effect():
 
 @pytest.mark.parametrize("solver", ["sparse", "cg"])
 def test_linear_solvers_agree_with_dense_cholesky(solver):
-    ref = jaxdem.solve(parse_scene(_patch({"linear_solver": "dense"})))
-    other = jaxdem.solve(parse_scene(_patch({"linear_solver": solver})))
+    # Both converged far below the 1e-7 they are compared at: at the default
+    # tolerance (1e-6) each answer is only that close to the equilibrium, and
+    # the cg path's inexact Newton stops wherever its own round-off takes it.
+    ref = jaxdem.solve(parse_scene(_patch({"linear_solver": "dense", "tolerance": 1e-10})))
+    other = jaxdem.solve(parse_scene(_patch({"linear_solver": solver, "tolerance": 1e-10})))
     assert other.converged
     a = np.array(ref.monitors["corner"]["displacement"])
     b = np.array(other.monitors["corner"]["displacement"])

@@ -37,3 +37,35 @@ def test_settlement_scales_with_load_steps_only_through_the_path():
     a = jaxdem.solve(parse_scene(stack(3, load_steps=1))).monitors["top"]["displacement"][1]
     b = jaxdem.solve(parse_scene(stack(3, load_steps=5))).monitors["top"]["displacement"][1]
     assert a == pytest.approx(b, rel=1e-6)
+
+
+def _grid(n: int) -> dict:
+    """n x n square 1 m blocks on a fixed base 1 m high (benchmarks/bench_time_to_answer.py)."""
+    blocks = [{"vertices": [[-1.0, -1.0], [n + 1.0, -1.0], [n + 1.0, 0.0], [-1.0, 0.0]],
+               "material": "rock", "fixed": True}]
+    blocks += [{"vertices": [[i, j], [i + 1, j], [i + 1, j + 1], [i, j + 1]], "material": "rock"}
+               for i in range(n) for j in range(n)]
+    return {"scene": {"name": "grid"}, "solver": {"load_steps": 1},
+            "materials": {"rock": {"E": 1e7, "nu": 0.25, "unit_weight": 25.0}},
+            "joints": {"j": {"kn": 1e6, "ks": 1e6, "friction_deg": 35.0}},
+            "blocks": blocks, "monitors": [{"name": "top", "point": [n // 2 + 0.5, n - 0.5]}]}
+
+
+def test_a_grid_of_columns_settles_as_stacks_in_few_iterations():
+    """A 6 x 6 grid: rigid columns side by side settle alike, so each is the stack
+    above (same closed form) and the side contacts carry no force. Cohesionless,
+    their strength is zero, and round-off shear (1e-13 kN) is not a slip: a stuck
+    slot slips only when its shear passes the strength by the hysteresis band (a
+    tenth of the tolerance). Without the band the side contacts flipped
+    stick/slip at round-off and the secant iteration took 143 Newton iterations
+    on a 10 x 10 grid; it is a linear problem, which Newton solves in a few."""
+    n = 6
+    r = jaxdem.solve(parse_scene(_grid(n)))
+    assert r.converged
+    kn_i, _ = intact_stiffness(1e7, 0.25)
+    settle = sum(25.0 * (n - k) / equivalent_stiffness(0.5, 0.5, 1 / kn_i, 1 / kn_i, 1 / 1e6)
+                 for k in range(n))
+    ux, uy = r.monitors["top"]["displacement"]
+    assert -uy == pytest.approx(settle, rel=1e-4)
+    assert abs(ux) < 1e-6 * settle
+    assert sum(r.to_dict()["stages"][0]["iterations"]) <= 10
