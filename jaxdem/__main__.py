@@ -1,8 +1,6 @@
 """``python -m jaxdem``: the same as the ``jaxdem`` command."""
 
-import sys
-
-from jaxdem.cli import main
+from jaxdem.cli import entry
 
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()

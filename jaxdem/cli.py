@@ -44,6 +44,7 @@ Where it lives (this module is the entry point, ``jaxdem = "jaxdem.cli:main"`` a
 
 from __future__ import annotations
 
+import os
 import sys
 from collections.abc import Sequence
 
@@ -68,6 +69,24 @@ __all__ = [
     "SampleBar",
     "main",
 ]
+
+
+def entry() -> None:
+    """The ``jaxdem`` command: :func:`main`, then the process ends at once.
+
+    Once the answer, the files and the output streams are written, nothing is left
+    to do: Python's own shutdown (JAX's runtime and thread pools, the collection
+    of every module) took 0.2-0.4 s of a 1.5 s run, and is skipped with
+    ``os._exit``. Files are closed where they are written; the streams are
+    flushed here. :func:`main` itself returns, for callers in Python.
+    """
+    import logging
+
+    code = main()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    logging.shutdown()
+    os._exit(code)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -6,6 +6,7 @@ import json
 import subprocess
 import sys
 import types
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,6 +15,8 @@ from jaxdem.cli import main
 from jaxdem.cli_progress import ProgressBar
 from jaxdem.results import Result
 from jaxdem.state import STICK
+
+ROOT = Path(__file__).resolve().parents[1]
 
 # A 1 x 1 m block resting on a fixed 4 x 1 m base; one point monitor at its centroid.
 SCENE = """
@@ -159,6 +162,8 @@ def test_help_does_not_import_plotting():
 
 
 def test_python_dash_m(tmp_path):
+    """``python -m jaxdem`` ends its process at once after the command (cli.entry,
+    os._exit): the exit status and everything printed to a pipe still come through."""
     proc = subprocess.run(
         [sys.executable, "-m", "jaxdem", "run", str(tmp_path / "nope.toml")],
         capture_output=True,
@@ -166,6 +171,13 @@ def test_python_dash_m(tmp_path):
     )
     assert proc.returncode == 2
     assert proc.stderr.startswith("error: ") and "Traceback" not in proc.stderr
+    out = tmp_path / "out"
+    proc = subprocess.run(
+        [sys.executable, "-m", "jaxdem", "run", str(ROOT / "examples" / "block_on_incline.toml"),
+         "--out", str(out), "--no-figures"], capture_output=True, text=True, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.rstrip().splitlines()[-1] == f"wrote {out / 'result.json'}"
+    assert json.loads((out / "result.json").read_text())["converged"]
 
 
 # --------------------------------------------------------------------------- solver outcomes
