@@ -152,8 +152,7 @@ def back_analyse(
       SceneError: an unknown monitor, stage or parameter path, a point observation
         without component, bad bounds or std; the message names the field.
       ValueError: an unknown optimizer, max_iterations < 0, restarts < 0, tolerance <= 0,
-        or a
-        ``theta0`` whose length is not that of ``fit``.
+        or a ``theta0`` whose length is not that of ``fit``.
 
     Example::
 
