@@ -134,6 +134,7 @@ class Counter:
         self.problem, self.ratio, self.target, self.budget = problem, ratio, target, budget
         self.equiv, self.best, self.hit = 0.0, np.inf, None
         self.outcome = ""  # how back_analyse ended (Gauss-Newton and L-BFGS)
+        self.local_fits = 0  # back_analyse's local fits (more than 1 after a restart)
         self.t0 = time.perf_counter()
         self._evaluate = problem.evaluate
         problem.evaluate = self.evaluate
@@ -203,6 +204,7 @@ def run(method, paths, start_u, seed, obs, ratio, target, budget):
                                bounds=bounds, optimizer=opt, max_iterations=200,
                                tolerance=1e-10)
             c.outcome = f"{fit.status}: {fit.message}"
+            c.local_fits = len(fit.starts)
         elif method == "LM, FD":
             scipy.optimize.least_squares(lambda z: c.residuals(tr.theta_z(z)), z0, method="lm",
                                          max_nfev=int(budget), xtol=1e-12, ftol=1e-12)
@@ -275,6 +277,9 @@ def main(argv=None):
                   f"{'>' if bound else ''}{med:.1f}  median wall "
                   f"{'>' if bound else ''}{float(np.median(wall)):.1f} s  per start: {cells}",
                   flush=True)
+            if any(c.local_fits > 1 for c in runs):
+                print(f"    local fits per start (restarts after a rejected fit): "
+                      f"{[c.local_fits for c in runs]}", flush=True)
             for k, c in enumerate(runs):
                 if c.hit is None and c.outcome:
                     print(f"    start {k} did not reach the target: {c.outcome}", flush=True)

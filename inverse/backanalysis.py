@@ -52,15 +52,16 @@ from typing import Any
 
 import numpy as np
 
-from inverse.fit import (ADAM_LEARNING_RATE, CONVERGED, DEFAULT_TOLERANCE,
-                         NO_EQUILIBRIUM_AT_START, OPTIMIZERS, Objective, Run, Transform,
-                         check_bounds, check_fit, finite_entry, make_transform, restore,
-                         run_adam, run_gauss_newton, run_lbfgs, scales, start_z)
+from inverse.fit import (ADAM_LEARNING_RATE, CONVERGED, DEFAULT_TOLERANCE, LM_MAX_STEP,
+                         NO_EQUILIBRIUM_AT_START, OPTIMIZERS, RESTARTS, Objective, Run,
+                         Transform, check_bounds, check_fit, finite_entry, make_transform,
+                         restart_points, restore, run_adam, run_gauss_newton, run_lbfgs,
+                         scales, start_z)
 from inverse.observations import (Observation, as_observations, checked_observations,
                                   observed_model, read_observations, resolve_stages)
 from inverse.report import BackAnalysis
-from inverse.statistics import (bound_warnings, fit_warnings, gauss_newton_statistics,
-                                precision_warnings)
+from inverse.statistics import (REJECT_QUANTILE, bound_warnings, fit_warnings,
+                                gauss_newton_statistics, misfit_limit, precision_warnings)
 from jaxdem.scene import Scene
 
 __all__ = ["BackAnalysis", "Observation", "back_analyse", "read_observations"]
@@ -76,6 +77,7 @@ def back_analyse(
     max_iterations: int = 50,
     tolerance: float = DEFAULT_TOLERANCE,
     learning_rate: float = ADAM_LEARNING_RATE,
+    restarts: int = RESTARTS,
     stages: Sequence[str] | None = None,
     forward: tuple[Callable, Any] | None = None,
     progress: Callable[[dict[str, Any]], None] | None = None,
@@ -101,6 +103,18 @@ def back_analyse(
     A start without equilibrium moves towards the centre of the bounds first
     (``RESTORE_STEPS``; ``warnings`` says where the fit started).
 
+    Restarts: a local fit whose misfit noise cannot explain (2 x misfit above the
+    ``REJECT_QUANTILE`` = 99.9 % quantile of chi^2 with n - p degrees of freedom,
+    :func:`inverse.statistics.misfit_limit`) has stopped in a local minimum, or the
+    model or the stds are wrong. The fit then starts again, at most ``restarts`` times,
+    from the centre of the bounds and then the Halton points of
+    :func:`inverse.fit.restart_points` (a point within one trust-region step,
+    ``LM_MAX_STEP``, of the given start is skipped), stops at the first accepted fit
+    and keeps the lowest misfit. A fit accepted from the given start does no restart
+    and costs nothing more; ``starts`` in the result lists every local fit and
+    ``warnings`` says when there were restarts. No restart follows a start without
+    equilibrium (``no_equilibrium_at_start``) or ``max_iterations = 0``.
+
     Args:
       scene: the scene (``jaxdem.load_scene``); observed monitors, stages and fitted
         paths are checked against it before any solve. May be None with ``forward``.
@@ -113,9 +127,12 @@ def back_analyse(
       optimizer: "gauss-newton" (the default: Levenberg-Marquardt on the observations'
         Jacobian, fewest solves and robust from any start within the bounds), "lbfgs"
         (optax L-BFGS, zoom line search) or "adam" (optax).
-      max_iterations: most optimiser iterations (0: analyse the starting point).
+      max_iterations: most optimiser iterations of each local fit (0: analyse the
+        starting point).
       tolerance: of the stopping rule above.
       learning_rate: Adam's step in z-space (``ADAM_LEARNING_RATE``); unused by L-BFGS.
+      restarts: most restarts after a rejected fit (above; default ``RESTARTS`` = 4;
+        0: one local fit from the given start).
       stages: the stage names the model reports (``jaxdem.differentiable``'s
         ``stages``); None: the stages the observations name, plus the last one if
         some observation names none; no stages at all when none does.
@@ -124,7 +141,8 @@ def back_analyse(
         of monitors when ``stages`` is not None).
       progress: called at the start and after each iteration with a dict:
         ``iteration``, ``misfit``, ``params`` ({path: value}), ``gradient_norm``
-        (in z-space), ``evaluations``.
+        (in z-space), ``evaluations`` (all solves so far), ``start`` (0 for the fit
+        from the given start, k for the k-th restart).
 
     Returns:
       a :class:`BackAnalysis`; its ``status`` says whether the fit converged, and is
@@ -133,8 +151,8 @@ def back_analyse(
     Raises:
       SceneError: an unknown monitor, stage or parameter path, a point observation
         without component, bad bounds or std; the message names the field.
-      ValueError: an unknown optimizer, max_iterations < 0, tolerance <= 0, or a
-        ``theta0`` whose length is not that of ``fit``.
+      ValueError: an unknown optimizer, max_iterations < 0, restarts < 0, tolerance <= 0,
+        or a ``theta0`` whose length is not that of ``fit``.
 
     Example::
 
@@ -147,6 +165,8 @@ def back_analyse(
         raise ValueError(f"optimizer must be one of {', '.join(OPTIMIZERS)} (got {optimizer!r})")
     if int(max_iterations) != max_iterations or max_iterations < 0:
         raise ValueError(f"max_iterations must be a whole number >= 0 (got {max_iterations!r})")
+    if int(restarts) != restarts or restarts < 0:
+        raise ValueError(f"restarts must be a whole number >= 0 (got {restarts!r})")
     if not tolerance > 0.0:
         raise ValueError(f"tolerance must be > 0 (got {tolerance!r})")
     if scene is None and forward is None:
@@ -171,6 +191,8 @@ def back_analyse(
     model = observed_model(f, observations, stage_list, last_stage)
     objective = Objective(model, transform, observed_values, std)
 
+    current = 0  # which local fit is reporting: 0 from the given start, k the k-th restart
+
     def report(iteration: int, z: Any, value: float, grad: Any) -> None:
         if progress is None:
             return
@@ -181,22 +203,76 @@ def back_analyse(
             "params": dict(zip(paths, map(float, theta), strict=True)),
             "gradient_norm": float(np.linalg.norm(np.asarray(grad))),
             "evaluations": dict(objective.evaluations),
+            "start": current,
         })
 
-    z0, restored = restore(objective, start_z(theta0, transform), paths)
-    if optimizer == "lbfgs":
-        run = run_lbfgs(objective, z0, int(max_iterations), tolerance, report)
-    elif optimizer == "gauss-newton":
-        run = run_gauss_newton(objective, z0, int(max_iterations), tolerance, report)
+    def local_fit(z_start: np.ndarray) -> tuple[Run, dict[str, Any], str]:
+        """One run of the optimiser from z_start (restored: ``restore``), its line in
+        ``starts`` and the restoration's sentence."""
+        before = objective.evaluations["gradient"] + objective.evaluations["forward"]
+        z_start, restored = restore(objective, z_start, paths)
+        if optimizer == "lbfgs":
+            run = run_lbfgs(objective, z_start, int(max_iterations), tolerance, report)
+        elif optimizer == "gauss-newton":
+            run = run_gauss_newton(objective, z_start, int(max_iterations), tolerance, report)
+        else:
+            run = run_adam(objective, z_start, int(max_iterations), tolerance, learning_rate,
+                           report)
+        finite = [v for v in run.history if math.isfinite(v)]
+        line = {
+            "start": dict(zip(paths, map(float, transform.theta(z_start)), strict=True)),
+            "params": dict(zip(paths, map(float, transform.theta(run.z)), strict=True)),
+            "misfit": min(finite) if finite else math.inf,
+            "status": run.status,
+            "iterations": run.iterations,
+            "solves": objective.evaluations["gradient"] + objective.evaluations["forward"]
+                      - before,
+        }
+        return run, line, restored
+
+    run, line, restored = local_fit(start_z(theta0, transform))
+    runs, starts = [run], [line]
+    limit = misfit_limit(len(observations), len(paths))
+    if max_iterations > 0 and run.status != NO_EQUILIBRIUM_AT_START:
+        u_given = transform.fraction(start_z(theta0, transform))
+        candidates = (u for u in restart_points(len(paths))
+                      if np.max(np.abs(u - u_given)) >= LM_MAX_STEP)
+        while len(runs) <= restarts and not min(s["misfit"] for s in starts) <= limit:
+            current += 1
+            u = next(candidates)
+            run, line, _ = local_fit(np.log(u) - np.log1p(-u))
+            runs.append(run)
+            starts.append(line)
+    best = min(range(len(runs)), key=lambda k: starts[k]["misfit"])
+    warnings = [restored] if restored else []
+    if len(runs) > 1:
+        warnings.append(_restart_sentence(starts, best, limit, len(observations), len(paths)))
+    return _analyse(runs[best], theta0, objective, transform, paths, observations, optimizer,
+                    warnings, starts)
+
+
+def _restart_sentence(starts: list[dict[str, Any]], best: int, limit: float, n: int,
+                      p: int) -> str:
+    """Why the fit restarted, from where, and which local fit gave the estimate."""
+    misfits = ", ".join(f"{s['misfit']:.4g}" for s in starts[1:])
+    if starts[best]["misfit"] <= limit:
+        outcome = (f"restart {best} reached misfit {starts[best]['misfit']:.4g}, which noise "
+                   "explains")
     else:
-        run = run_adam(objective, z0, int(max_iterations), tolerance, learning_rate, report)
-    return _analyse(run, theta0, objective, transform, paths, observations, optimizer,
-                    [restored] if restored else [])
+        kept = f"restart {best}'s" if best else "the first fit's"
+        outcome = (f"none reached a misfit that noise explains, and the estimate is {kept}, "
+                   "the lowest: the model or the stds may be wrong, which no restart mends")
+    dof, k = max(n - p, 1), len(starts) - 1
+    return (f"the fit from the start ended at misfit {starts[0]['misfit']:.4g}, more than noise "
+            f"explains (above {limit:.4g}, the {REJECT_QUANTILE:.1%} quantile of chi^2 / 2 with "
+            f"{dof} degree{'s' * (dof > 1)} of freedom): a local minimum, or a model that cannot "
+            f"fit; it restarted {k} time{'s' * (k > 1)} from other points (the centre of the "
+            f"bounds, then Halton points; misfits {misfits}): {outcome}")
 
 
 def _analyse(run: Run, theta0: np.ndarray, objective: Objective, transform: Transform,
              paths: list[str], observations: list[Observation], optimizer: str,
-             warnings: list[str]) -> BackAnalysis:
+             warnings: list[str], starts: list[dict[str, Any]]) -> BackAnalysis:
     theta = transform.theta(run.z)
     y, jac = objective.evaluate(theta, derivatives=True)
     r = (y - objective.observed) / objective.std
@@ -245,4 +321,5 @@ def _analyse(run: Run, theta0: np.ndarray, objective: Objective, transform: Tran
         message=run.message,
         warnings=warnings,
         optimizer=optimizer,
+        starts=starts,
     )

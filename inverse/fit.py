@@ -3,8 +3,9 @@
 Owns the parameter transform (bounds, log scaling, z = logit of the fraction of the
 range), :class:`Objective` (misfit and Jacobian of the observed model, with cached
 and counted solves; a solve without equilibrium, without derivative or that raises is
-a point to step back from), the start's restoration (``restore``) and the optimisers:
-Gauss-Newton / Levenberg-Marquardt (the default), optax L-BFGS and Adam. Data flows
+a point to step back from), the start's restoration (``restore``), the points a rejected
+fit restarts from (``restart_points``) and the optimisers: Gauss-Newton /
+Levenberg-Marquardt (the default), optax L-BFGS and Adam. Data flows
 one way: the vector model of :mod:`inverse.observations` -> Objective -> a
 :class:`Run` (the point reached, history, status), which :mod:`inverse.backanalysis`
 turns into a result with :mod:`inverse.statistics`. Host code around the jitted
@@ -15,7 +16,7 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -52,6 +53,13 @@ RESTORE_STEPS = (0.25, 0.5, 0.75, 1.0)
 line (in u, see ``run_gauss_newton``) from the start (0) to the centre of the bounds
 (1); the fit starts from the first with equilibrium and derivatives. With default bounds
 the start is the centre, so only explicit bounds give it room to move."""
+
+RESTARTS = 4
+"""Most restarts of the local fit (``back_analyse(restarts=...)``, ``--restarts``). The
+fit restarts only when its misfit is statistically rejected (``REJECT_QUANTILE`` in
+:mod:`inverse.statistics`), from the points of :func:`restart_points` in turn, and stops
+at the first accepted fit: an accepted first fit costs nothing more, a model that fits
+nowhere (stds too small, a mechanism missing from the model) pays for every restart."""
 
 CACHE_SIZE = 8
 """Forward evaluations (values and Jacobians) remembered by theta: the line search asks
@@ -570,3 +578,42 @@ def restore(objective: Objective, z0: np.ndarray, paths: list[str]) -> tuple[np.
                        f"values; the fit started from {moved}, {t:.0%} of the way (in "
                        f"log-scaled coordinates) to the centre of the bounds")
     return z0, ""
+
+
+def restart_points(p: int) -> Iterator[np.ndarray]:
+    """Where to restart a rejected fit, in u (each parameter's fraction of its
+    (log-)range): the centre of the bounds, then the Halton sequence (bases 2, 3, 5, ...,
+    one per parameter; Halton 1960), which fills the box evenly and deterministically:
+    each new point lands in the largest gap the earlier ones left.
+
+    Example::
+
+        from itertools import islice
+        list(islice(restart_points(2), 3))  # [0.5, 0.5], [0.5, 0.333], [0.25, 0.667]
+    """
+    yield np.full(p, 0.5)
+    bases = _primes(p)
+    k = 1
+    while True:
+        yield np.array([_radical_inverse(k, base) for base in bases])
+        k += 1
+
+
+def _radical_inverse(k: int, base: int) -> float:
+    """k's digits in ``base`` mirrored about the point: 1 -> 1/b, 2 -> 2/b, b -> 1/b^2."""
+    x, f = 0.0, 1.0
+    while k:
+        f /= base
+        x += f * (k % base)
+        k //= base
+    return x
+
+
+def _primes(count: int) -> list[int]:
+    out: list[int] = []
+    n = 2
+    while len(out) < count:
+        if all(n % q for q in out):
+            out.append(n)
+        n += 1
+    return out

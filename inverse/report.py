@@ -8,7 +8,7 @@ filled by :mod:`inverse.backanalysis` and imports only :class:`Observation`.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -47,6 +47,13 @@ class BackAnalysis:
       message: what happened, in words.
       warnings: sentences about identifiability, bounds and the quality of the fit.
       optimizer: "gauss-newton", "lbfgs" or "adam".
+      starts: every local fit, the one from the given start first, then the restarts
+        after a rejected fit (``back_analyse``'s ``restarts``), each a dict: ``start``
+        and ``params`` ({path: value} where it started, after any restoration, and
+        where it ended), ``misfit`` (its lowest), ``status``, ``iterations`` and
+        ``solves`` (with and without derivatives). ``history``, ``iterations``,
+        ``status`` and ``message`` above are those of the fit that gave the estimate
+        (the lowest misfit); ``evaluations`` counts the solves of all.
     """
 
     paths: list[str]
@@ -68,6 +75,7 @@ class BackAnalysis:
     message: str
     warnings: list[str]
     optimizer: str
+    starts: list[dict[str, Any]] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         """A JSON-serialisable dict (what ``back_analysis.json`` holds): NaN and inf are
@@ -108,6 +116,7 @@ class BackAnalysis:
             "message": self.message,
             "warnings": list(self.warnings),
             "optimizer": self.optimizer,
+            "starts": [dict(s, misfit=_json(s["misfit"])) for s in self.starts],
         }
 
 

@@ -1,6 +1,7 @@
 """Statistics of an estimate: Gauss-Newton standard deviations, correlations, which
 parameters the observations determine, and the warnings that say so in words.
 
+Also the chi-square test that decides whether a fit is rejected (``misfit_limit``).
 Takes the dimensionless sensitivity matrix at the estimate (from :mod:`inverse.fit`'s
 objective, built by :mod:`inverse.backanalysis`) and gives back stds, identifiability,
 the correlation matrix and sentences; imports nothing from the package. Host NumPy.
@@ -125,6 +126,29 @@ def precision_warnings(theta: np.ndarray, stds: np.ndarray, identifiable: np.nda
             out.append(f"{path} is poorly determined: its standard deviation ({stds[j]:.3g}) "
                        f"exceeds the estimate ({theta[j]:.3g})")
     return out
+
+
+REJECT_QUANTILE = 0.999
+"""A fit is rejected, and the fit restarts elsewhere (``back_analyse(restarts=...)``),
+when 2 x its misfit exceeds this quantile of chi^2 with n - p degrees of freedom: if the
+model and the stated stds are right, the best fit's misfit lies above it once in a
+thousand noise draws, so a misfit above it says the optimiser stopped in a local minimum
+(or that the model or the stds are wrong, which no restart mends)."""
+
+
+def misfit_limit(n: int, p: int) -> float:
+    """The largest misfit (in units of chi^2 / 2) that noise explains: half the
+    ``REJECT_QUANTILE`` quantile of chi^2 with n - p degrees of freedom (at least 1: with
+    no more observations than parameters an exact fit exists and any misfit is
+    unexplained; one degree of freedom keeps the test from rejecting round-off).
+
+    Example::
+
+        misfit_limit(6, 2)  # 9.23: chi^2(4) lies below 18.47 99.9 % of the time
+    """
+    from scipy.stats import chi2
+
+    return 0.5 * float(chi2.ppf(REJECT_QUANTILE, max(n - p, 1)))
 
 
 def fit_warnings(misfit: float, n: int, p: int) -> list[str]:

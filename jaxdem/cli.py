@@ -11,7 +11,7 @@
            [--set PATH=VALUE ...]                               # factor of safety
     jaxdem back-analyse SCENE.toml --observed FILE.csv --fit PATH [--fit PATH ...]
            [--bounds PATH=LO:HI ...] [--optimizer gauss-newton|lbfgs|adam] [--max-iterations N]
-           [--out DIR] [--set PATH=VALUE ...]                   # fit parameters to measurements
+           [--restarts N] [--out DIR] [--set PATH=VALUE ...]    # fit parameters to measurements
 
 Exit status: 0 when solved (stable or not: a mechanism is an answer), 2 on
 invalid input (one line ``error: <message>`` on stderr naming the field, no

@@ -44,6 +44,8 @@ MAX_TRIALS = 1024
 """Most ``fos --trials`` (factors solved together in one batch per round)."""
 MAX_FIT_ITERATIONS = 10_000
 """Most ``back-analyse --max-iterations`` (each iteration solves the scene at least once)."""
+MAX_FIT_RESTARTS = 100
+"""Most ``back-analyse --restarts`` (each restart is a whole local fit)."""
 
 
 class InputError(Exception):
@@ -111,6 +113,9 @@ def cmd_back_analyse(args: argparse.Namespace) -> int:
     if not 0 <= args.max_iterations <= MAX_FIT_ITERATIONS:
         what = ">= 0" if args.max_iterations < 0 else f"<= {MAX_FIT_ITERATIONS:,}"
         raise InputError(f"--max-iterations must be {what} (got {args.max_iterations})")
+    if args.restarts is not None and not 0 <= args.restarts <= MAX_FIT_RESTARTS:
+        what = ">= 0" if args.restarts < 0 else f"<= {MAX_FIT_RESTARTS}"
+        raise InputError(f"--restarts must be {what} (got {args.restarts})")
     scene = _load(path, overrides)
     _check_out(out)
 
@@ -131,6 +136,7 @@ def cmd_back_analyse(args: argparse.Namespace) -> int:
             bounds=bounds,
             optimizer=args.optimizer,
             max_iterations=args.max_iterations,
+            **({} if args.restarts is None else {"restarts": args.restarts}),
             progress=_print_iteration,
         )
     except SceneError:

@@ -133,7 +133,13 @@ def _parser() -> argparse.ArgumentParser:
                       default="gauss-newton", help="gauss-newton (default: Levenberg-Marquardt "
                       "on the monitors' Jacobian, fewest solves), lbfgs or adam")
     back.add_argument("--max-iterations", type=int, default=50, metavar="N",
-                      help="most optimiser iterations (default 50)")
+                      help="most optimiser iterations of each local fit (default 50)")
+    # No default here: back_analyse's (inverse.fit.RESTARTS) holds, and --help stays
+    # free of JAX imports.
+    back.add_argument("--restarts", type=int, metavar="N",
+                      help="most restarts from other points (the centre of the bounds, then "
+                      "Halton points) when a fit's misfit is more than the stds explain "
+                      "(chi-square test at 99.9%%): a local minimum (default 4; 0: none)")
     back.add_argument(
         "--out",
         default=DEFAULT_BACK_ANALYSIS_OUT,

@@ -121,6 +121,9 @@ def _monitor_table(monitors: dict[str, dict[str, Any]]) -> list[str]:
 def _print_iteration(event: dict[str, Any]) -> None:
     """One line per back-analysis iteration, on stderr like the solver's progress."""
     params = "  ".join(f"{path}={value:.5g}" for path, value in event["params"].items())
+    if event.get("start") and event["iteration"] == 0:
+        print(f"restart {event['start']}: the misfit so far is more than the stds explain",
+              file=sys.stderr, flush=True)
     print(
         f"it {event['iteration']:>3}  misfit {event['misfit']:.4e}  "
         f"|grad| {event['gradient_norm']:.2e}  {params}",

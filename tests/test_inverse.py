@@ -406,6 +406,81 @@ def test_gauss_newton_steps_along_one_parameter_beside_a_region_without_equilibr
     assert result.evaluations["gradient"] <= 12
 
 
+def two_valleys(theta):
+    """Monitors whose misfit has two valleys in x = log(kn / 1e6): s1 sees only x^2, and
+    only the slight slope of s2 (0.001 x) tells x = +log 2 (the truth, kn = 2e6) from
+    x = -log 2. The valley at kn = 5e5 is a local minimum whose misfit (48 with stds of
+    1e-4) is far above what noise explains, like the slope's beside its mechanism."""
+    x, w = jnp.log(theta[0] / 1e6), jnp.log(theta[1] / 1e6)
+    return {"s1": 0.01 * x**2, "s2": 0.001 * x + 0.01 * w, "s3": 0.01 * (1.0 + w)}
+
+
+TWO_VALLEYS_TRUTH = np.array([2e6, 1e6])
+
+
+def two_valley_fit(start, **kwargs):
+    observed = [Observation(k, float(v), 1e-4)
+                for k, v in two_valleys(jnp.asarray(TWO_VALLEYS_TRUTH)).items()]
+    return back_analyse(None, observed, ["kn", "ks"], forward=(two_valleys, jnp.array(start)),
+                        **kwargs)
+
+
+def test_a_rejected_fit_restarts_and_reaches_the_truth():
+    from inverse.statistics import misfit_limit
+
+    bounds = {"kn": (1e4, 1e8), "ks": (1e4, 1e8)}
+    alone = two_valley_fit([3e5, 3e5], bounds=bounds, restarts=0)
+    assert alone.converged and abs(alone.params["kn"] / 5e5 - 1.0) < 0.01  # the wrong valley
+    assert alone.misfit > misfit_limit(3, 2)
+    assert len(alone.starts) == 1
+
+    result = two_valley_fit([3e5, 3e5], bounds=bounds)
+    assert result.converged, result.message
+    assert abs(result.params["kn"] / 2e6 - 1.0) < 1e-6
+    assert abs(result.params["ks"] / 1e6 - 1.0) < 1e-6
+    # The first local fit is the one without restarts, rejected; the first restart (from
+    # the centre of the bounds, kn = ks = 1e6) is accepted, and the fit stops there.
+    assert [s["misfit"] for s in result.starts][0] == pytest.approx(alone.misfit)
+    assert len(result.starts) == 2
+    assert result.starts[1]["start"] == pytest.approx({"kn": 1e6, "ks": 1e6})
+    assert result.starts[1]["misfit"] < 1e-10
+    assert result.evaluations["gradient"] == sum(s["solves"] for s in result.starts)
+    assert any("restarted 1 time from other points" in w for w in result.warnings)
+    json.dumps(result.to_dict(), allow_nan=False)
+
+
+def test_restarts_skip_the_centre_when_the_fit_started_there():
+    # Default bounds: the start is their centre, so the restarts come from the Halton
+    # points, (0.5, 1/3), (1/4, 2/3), (3/4, 1/9) of each (log-)range: the first two lie
+    # on the start's side of the kn valleys, the third (kn = 3e6) on the truth's.
+    result = two_valley_fit([3e5, 3e5])
+    assert abs(result.params["kn"] / 2e6 - 1.0) < 1e-6
+    assert [s["start"]["kn"] for s in result.starts] == pytest.approx([3e5, 3e5, 3e4, 3e6])
+    assert [s["misfit"] > 1.0 for s in result.starts] == [True, True, True, False]
+
+
+def test_an_accepted_fit_does_not_restart():
+    first = two_valley_fit([6e6, 3e5])
+    alone = two_valley_fit([6e6, 3e5], restarts=0)
+    assert abs(first.params["kn"] / 2e6 - 1.0) < 1e-6
+    assert len(first.starts) == 1
+    assert first.evaluations == alone.evaluations
+    assert not any("restarted" in w for w in first.warnings)
+
+
+def test_restarts_are_capped_when_no_fit_can_be_accepted():
+    # Every value 1.5 times the model's at the truth: no (kn, ks) fits them within their
+    # stds, every local fit is rejected, and the fit stops after `restarts` restarts with
+    # the lowest misfit.
+    observed = [Observation(k, float(v) * 1.5, 1e-4)
+                for k, v in two_valleys(jnp.asarray(TWO_VALLEYS_TRUTH)).items()]
+    result = back_analyse(None, observed, ["kn", "ks"],
+                          forward=(two_valleys, jnp.array([6e6, 3e5])), restarts=2)
+    assert len(result.starts) == 3
+    assert result.misfit == pytest.approx(min(s["misfit"] for s in result.starts))
+    assert any("none reached a misfit that noise explains" in w for w in result.warnings)
+
+
 def test_to_dict_is_json_without_nan(scene):
     result = fit(scene, exact_observations(staged(tunnel), TRUE, stages=True), f=staged(tunnel))
     data = json.loads(json.dumps(result.to_dict(), allow_nan=False))
@@ -582,6 +657,7 @@ def test_cli_back_analyse_with_a_stand_in_model(tmp_path, capsys, monkeypatch):
     assert data["params"][KN] == pytest.approx(5e4, rel=0.01)
     assert data["bounds"][KN] == [1e3, 1e7]
     assert data["identifiable"] == {KN: True, KS: False}
+    assert len(data["starts"]) == 1  # accepted from the start: no restart
     for name in ("misfit.png", "fit.png", "sensitivity.png"):
         assert (out / name).stat().st_size > 0
 
@@ -615,6 +691,7 @@ def test_cli_back_analyse_exits_3_without_equilibrium_at_the_start(tmp_path, cap
         (["--observed", "{bad}", "--fit", KN], "no monitor named 'crown'"),
         (["--observed", "{csv}", "--fit", KN, "--max-iterations", "-1"],
          "--max-iterations must be >= 0"),
+        (["--observed", "{csv}", "--fit", KN, "--restarts", "-1"], "--restarts must be >= 0"),
         (["--observed", "{csv}", "--fit", KN, "--set", "joints.j.kn=-5"], "joints.j.kn"),
     ],
 )
