@@ -23,9 +23,9 @@ from matplotlib.figure import Figure
 
 DPI = 150
 PNG_OPTIONS = {"compress_level": 1}
-"""zlib level of the PNGs: level 1 writes them in about a fifth of the time of the
-default 6, for files about 1.3 times larger (a figure is drawn after the answer,
-but still within the command's time)."""
+"""zlib level of the PNGs: at the default 6 the encoding took 0.44 s of the 2.3 s that
+the incline's four figures took in a profile (a loaded machine); at 1 it is no longer
+among the profile's top entries, for files 1.2-1.4 times larger."""
 
 
 def _figure(figsize: tuple[float, float]) -> tuple[Figure, Any]:

@@ -94,10 +94,9 @@ def run(scene, model: Model, state: State, layout, data: Data, progress=None,
     """
     plan = _stage_plan(scene)
     if driver is None:
-        driver = _Driver(model, state, layout, data, progress)
         if quick is None:
             quick = data.p == 0 and model.n_blocks * increment_count(scene, layout) <= QUICK_WORK
-        driver.quick = quick
+        driver = _Driver(model, state, layout, data, progress, quick)
     d = driver
     in_situ = scene.in_situ
     N, D = model.n_blocks, model.ndof
@@ -270,7 +269,7 @@ class _Driver:
     of the state's :data:`jaxdem.sensitivities.STATE_FLOATS` with respect to the p parameters.
     """
 
-    def __init__(self, model, state, layout, data: Data, progress):
+    def __init__(self, model, state, layout, data: Data, progress, quick: bool = False):
         self.model, self.state, self.layout = model, state, layout
         self.data, self.progress = data, progress
         self.compile_s = self.solve_s = 0.0
@@ -282,7 +281,7 @@ class _Driver:
         self.bolt_active = np.zeros(model.n_bolts, bool)
         self.water_y = data.water_y
         self.approximate = False
-        self.quick = False  # programs compiled quick (compile_cache.QUICK_COMPILER_OPTIONS)
+        self.quick = quick  # programs compiled quick (compile_cache.QUICK_COMPILER_OPTIONS)
         p = data.p
         self.dstate = None if p == 0 else {
             k: jnp.zeros((p,) + getattr(state, k).shape, getattr(state, k).dtype)
