@@ -77,9 +77,8 @@ def entry() -> None:
     Once the answer, the files and the output streams are written, nothing is left
     to do: Python's own shutdown (JAX's runtime and thread pools, the collection
     of every module) took 0.25 s of a 1.5 s run (more on a loaded machine), and
-    is skipped with
-    ``os._exit``. Files are closed where they are written; the streams are
-    flushed here. :func:`main` itself returns, for callers in Python.
+    is skipped with ``os._exit``. Files are closed where they are written; the
+    streams are flushed here. :func:`main` itself returns, for callers in Python.
     """
     import logging
 
