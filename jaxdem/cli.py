@@ -33,7 +33,7 @@ ASCII) for ParaView; ``jaxdem --version`` prints the version.
 JAX, the solver and matplotlib are imported inside the commands, so that
 ``jaxdem --help`` answers at once.
 
-Where it lives (this module is the entry point, ``jaxdem = "jaxdem.cli:main"`` and
+Where it lives (this module is the entry point, ``jaxdem = "jaxdem.cli:entry"`` and
 ``python -m jaxdem``; each module imports only those above it):
 
 - :mod:`jaxdem.cli_progress`: progress bars on stderr;
