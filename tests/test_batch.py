@@ -187,7 +187,9 @@ def test_persistent_compilation_cache(tmp_path):
     first, answer = run(tmp_path / "r1", {"JAXDEM_CACHE_DIR": str(cache)})
     assert any((cache / "programs").iterdir())
     second, again = run(tmp_path / "r2", {"JAXDEM_CACHE_DIR": str(cache)})
-    assert second["compile_s"] < 0.3 * first["compile_s"], (first, second)
+    # What the store replaces (tracing and compiling) against what it costs (a load).
+    total = lambda t: t["lower_s"] + t["compile_s"]  # noqa: E731
+    assert total(second) < 0.3 * total(first), (first, second)
     assert second["lower_s"] == 0.0 < first["lower_s"], (first, second)
     assert again == answer
     # A program that JAX loads from its own cache is not stored (its copy would
