@@ -233,6 +233,13 @@ def cmd_fos(args: argparse.Namespace) -> int:
     return EXIT_OK if result.decided else EXIT_NOT_CONVERGED
 
 
+def _prepare_figures() -> None:
+    """Import matplotlib and load its fonts (while the solver's programs compile)."""
+    from jaxdem.plots_canvas import warm_up
+
+    warm_up()
+
+
 def _solve_and_report(path: Path, out: Path, overrides: dict[str, Any],
                       vtk: bool = False, figures: bool = True) -> int:
     _mark("start")
@@ -241,8 +248,10 @@ def _solve_and_report(path: Path, out: Path, overrides: dict[str, Any],
     print(f"{_scene_name(scene, path, overrides)}: {_scene_summary(scene)}")
     _mark("loaded")
 
-    from jaxdem import solver
+    from jaxdem import compile_cache, solver
 
+    if figures:
+        compile_cache.while_compiling(_prepare_figures)
     _mark("imported")
     bar = ProgressBar(n_stages=_stage_count(scene))
     with bar:

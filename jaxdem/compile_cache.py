@@ -29,11 +29,13 @@ and :mod:`jaxdem.batch` compile through it.
 from __future__ import annotations
 
 import collections
+import concurrent.futures
 import functools
 import hashlib
 import os
 import pickle
 import tempfile
+import threading
 import time
 import zlib
 from pathlib import Path
@@ -211,12 +213,131 @@ def _prune(directory: Path, limit: int) -> None:
             f.unlink(missing_ok=True)
 
 
+def _key(fn, args, static, quick):
+    leaves, tree = jax.tree.flatten(args)
+    key = (fn, tree, tuple((x.shape, str(x.dtype)) for x in leaves), tuple(sorted(static.items())),
+           quick)
+    return key, leaves, tree
+
+
+def _lower(fn, args, static, quick, leaves, tree):
+    """``fn``'s stored program for these shapes, or a function that compiles (and stores) it.
+
+    Returns (program, None) or (None, finish): the tracing and lowering, in
+    Python, are done here; ``finish()`` is the XLA compilation, which holds no
+    Python lock and may run on another thread.
+    """
+    t0 = time.perf_counter()
+    name, directory = _ON_DISK.get(fn), _program_dir()
+    path = None
+    if name is not None and directory is not None:
+        path = directory / f"{_disk_key(name, tree, leaves, static, _options(quick))}.pkl"
+    compiled = None if path is None else _load_program(path)
+    if compiled is not None:
+        _count(0.0, time.perf_counter() - t0)
+        return compiled, None
+    lowered = fn.lower(*args, **static)
+    t1 = time.perf_counter()
+    _count(t1 - t0, 0.0)
+
+    def finish():
+        _start_host_tasks()
+        t2 = time.perf_counter()
+        hits = _JAX_CACHE_HITS[0]
+        compiled = _xla_compile(lowered, quick)
+        # A hit on JAX's cache meanwhile (here or on another thread) may have been
+        # this program's: such a program is not stored (see the module's docstring).
+        if path is not None and _JAX_CACHE_HITS[0] == hits:
+            _store_program(path, compiled)
+        _count(0.0, time.perf_counter() - t2)
+        return compiled
+
+    return None, finish
+
+
+_HOST_TASKS: list = []
+
+
+def while_compiling(task) -> None:
+    """Run ``task()`` on a background thread once the next program starts compiling.
+
+    XLA compiles without Python's global interpreter lock, so host work that
+    will be needed later costs no waiting then on a machine with a second core:
+    the command line imports matplotlib and loads its fonts for the figures
+    (0.3 s of a 3 s cold run of a small scene). Started earlier, the task
+    would only share the lock with the tracing; loading a stored program holds
+    the lock too (the figures' warm-up during a load made a warm run of the
+    incline slower: 1.78 -> 2.01 s). A task is run at most once; one
+    that never starts (every program was loaded) is dropped, and its work is
+    done where it is needed. Its errors are ignored for the same reason.
+    """
+    with _LOCK:
+        _HOST_TASKS.append(task)
+
+
+def _start_host_tasks() -> None:
+    with _LOCK:
+        tasks, _HOST_TASKS[:] = list(_HOST_TASKS), []
+    for task in tasks:
+        threading.Thread(target=_quietly, args=(task,), daemon=True,
+                         name="jaxdem-host-task").start()
+
+
+def _quietly(task) -> None:
+    try:
+        task()
+    except Exception:  # noqa: BLE001 - see while_compiling
+        pass
+
+
+def _count(lower_s: float, compile_s: float) -> None:
+    with _LOCK:
+        COMPILE_TIMES["lower_s"] += lower_s
+        COMPILE_TIMES["compile_s"] += compile_s
+
+
+_LOCK = threading.Lock()
+_PENDING: dict = {}  # key -> Future of a program compiling in the background
+_BACKGROUND: list = []  # the one worker thread's executor, made on first use
+
+
+def prefetch(fn, *args, quick: bool = False, **static) -> None:
+    """Trace ``fn`` for these shapes now and compile it on a background thread.
+
+    :func:`_compiled` collects the program. XLA compiles without Python's
+    global interpreter lock, so a program that will be needed next (the
+    increment, while the in-situ preload is traced, compiled and run) costs no
+    waiting on a machine with a second core. Tracing stays on the caller's
+    thread: it needs the lock, and sharing it would only slow both. The
+    arguments need only have the shapes of the later call. Nothing is started
+    for a program already there.
+    """
+    key, leaves, tree = _key(fn, args, static, quick)
+    with _LOCK:
+        if key in _COMPILED or key in _PENDING:
+            return
+    try:
+        compiled, finish = _lower(fn, args, static, quick, leaves, tree)
+    except Exception:  # noqa: BLE001 - the call that needs the program reports it
+        return
+    with _LOCK:
+        if compiled is not None:
+            _COMPILED[key] = compiled
+            return
+        if not _BACKGROUND:
+            _BACKGROUND.append(concurrent.futures.ThreadPoolExecutor(
+                max_workers=1, thread_name_prefix="jaxdem-compile"))
+        _PENDING[key] = _BACKGROUND[0].submit(finish)
+
+
 def _compiled(fn, *args, quick: bool = False, **static):
     """``fn`` (jitted) compiled for these argument shapes and static settings; compile time (s).
 
     ``static`` holds ``fn``'s static keyword arguments; the compiled program is
     called without them. ``quick`` adds :data:`QUICK_COMPILER_OPTIONS` on a CPU
-    (a program that will run briefly).
+    (a program that will run briefly). The time returned is the time this
+    call waited: a program that :func:`prefetch` compiled in the background
+    while the caller worked costs only what was left of its compilation.
 
     One compilation per shape: the samples of a sweep and the iterations of a
     back-analysis reuse it. At most :data:`MAX_COMPILED` are kept: a compiled
@@ -226,30 +347,28 @@ def _compiled(fn, *args, quick: bool = False, **static):
     small host-step programs) are cleared with it; the persistent compilation
     cache on disk still serves a shape that comes back.
     """
-    leaves, tree = jax.tree.flatten(args)
-    key = (fn, tree, tuple((x.shape, str(x.dtype)) for x in leaves), tuple(sorted(static.items())),
-           quick)
-    if key in _COMPILED:
-        _COMPILED.move_to_end(key)
-        return _COMPILED[key], 0.0
+    key, leaves, tree = _key(fn, args, static, quick)
     t0 = time.perf_counter()
-    name, directory = _ON_DISK.get(fn), _program_dir()
-    path = None
-    if name is not None and directory is not None:
-        path = directory / f"{_disk_key(name, tree, leaves, static, _options(quick))}.pkl"
-    compiled = None if path is None else _load_program(path)
-    t1 = t0  # a stored program is loaded, not lowered
+    with _LOCK:
+        if key in _COMPILED:
+            _COMPILED.move_to_end(key)
+            return _COMPILED[key], 0.0
+        pending = _PENDING.pop(key, None)
+    compiled = None
+    if pending is not None:
+        try:
+            compiled = pending.result()
+        except Exception:  # noqa: BLE001 - compile here, where an error reaches the caller
+            compiled = None
     if compiled is None:
-        lowered = fn.lower(*args, **static)
-        t1 = time.perf_counter()
-        hits = _JAX_CACHE_HITS[0]
-        compiled = _xla_compile(lowered, quick)
-        if path is not None and _JAX_CACHE_HITS[0] == hits:
-            _store_program(path, compiled)
-    COMPILE_TIMES["lower_s"] += t1 - t0
-    COMPILE_TIMES["compile_s"] += time.perf_counter() - t1
-    _COMPILED[key] = compiled
-    if len(_COMPILED) > MAX_COMPILED:
-        _COMPILED.popitem(last=False)
+        compiled, finish = _lower(fn, args, static, quick, leaves, tree)
+        if compiled is None:
+            compiled = finish()
+    with _LOCK:
+        _COMPILED[key] = compiled
+        dropped = len(_COMPILED) > MAX_COMPILED
+        if dropped:
+            _COMPILED.popitem(last=False)
+    if dropped:
         jax.clear_caches()
     return compiled, time.perf_counter() - t0

@@ -82,6 +82,11 @@ def increment_tangent(model: Model, state: State, loads: Loads, tangents: dict):
     return _increment(model, state, loads, tangents)
 
 
+_substep_once = jax.jit(_substep)
+"""``_substep`` behind a jit of its own: traced once for its abstract arguments (the
+loop's shapes and its body share that trace; XLA inlines the call)."""
+
+
 def _increment(model: Model, state: State, loads: Loads, tangents=None, skip=None):
     """Geometry sub-steps until equilibrium; with ``tangents``, their sensitivities too.
 
@@ -90,7 +95,9 @@ def _increment(model: Model, state: State, loads: Loads, tangents=None, skip=Non
     """
     N = model.n_blocks
     dtype = state.verts.dtype
-    _, _, _, _, balance0, snap0 = jax.eval_shape(_substep, model, state, loads)
+    # The shapes of the balance and snapshot carried by the loop. ``_substep`` is
+    # jitted so that this trace is the one the loop body uses, not a second one.
+    _, _, _, _, balance0, snap0 = jax.eval_shape(_substep_once, model, state, loads)
     zeros_like = lambda t: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), t)  # noqa: E731
 
     def cond(c):
@@ -98,7 +105,7 @@ def _increment(model: Model, state: State, loads: Loads, tangents=None, skip=Non
 
     def body(c):
         if tangents is None:
-            st_new, du, newton, need, balance, snap = _substep(model, c["state"], loads)
+            st_new, du, newton, need, balance, snap = _substep_once(model, c["state"], loads)
         else:
             (st_new, du, newton, need, balance, snap), (dstate, dsnap) = _substep_tangent(
                 model, c["state"], loads, tangents["model"], c["dstate"], tangents["loads"])

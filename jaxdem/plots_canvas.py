@@ -12,6 +12,7 @@ Host NumPy and matplotlib only, no knowledge of results or scenes: the figure mo
 
 from __future__ import annotations
 
+import io
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -33,6 +34,20 @@ def _figure(figsize: tuple[float, float]) -> tuple[Figure, Any]:
     fig = Figure(figsize=figsize)
     FigureCanvasAgg(fig)
     return fig, fig.add_subplot()
+
+
+def warm_up() -> None:
+    """Draw a small labelled figure to nowhere: matplotlib's modules and fonts are loaded.
+
+    The command line runs this while the solver compiles (see
+    :func:`jaxdem.compile_cache.while_compiling`), so that the figures after the
+    answer do not pay for the loading.
+    """
+    fig, ax = _figure((1.0, 1.0))
+    ax.set_title("jaxdem")
+    ax.plot([0.0, 1.0], [0.0, 1.0])
+    fig.savefig(io.BytesIO(), format="png", dpi=DPI, bbox_inches="tight", pil_kwargs=PNG_OPTIONS)
+    fig.clear()
 
 
 #: Called as ``inspect(fig, path)`` after each figure is saved, before it is released

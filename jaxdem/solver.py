@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdem import model as model_mod
-from jaxdem.compile_cache import COMPILE_TIMES, QUICK_WORK, _compiled
+from jaxdem.compile_cache import COMPILE_TIMES, QUICK_WORK, _compiled, prefetch
 from jaxdem.increment import increment, increment_tangent
 from jaxdem.loads import _preload, _release_jit, make_loads
 from jaxdem.results import build_result, monitor_values
@@ -352,6 +352,10 @@ class _Driver:
         stacks = (data.sigma, data.surface, data.gamma, data.k0)
         args = tuple(jnp.asarray(x[0], self.layout.dtype) for x in stacks)
         loads, dloads = self.loads(base)
+        if self.dstate is None:
+            # The first increment starts from a state of these shapes: compile it
+            # while the preload compiles and runs.
+            prefetch(increment, self.model, self.state, loads, quick=self.quick)
         while True:
             if self.dstate is None:
                 pre, dt = _compiled(_preload, self.model, self.state, loads, *args, mode=mode,

@@ -1,0 +1,117 @@
+"""The compiled-program registry's overlap of work with XLA compilation (jaxdem.compile_cache).
+
+XLA compiles without Python's global interpreter lock. ``prefetch`` traces a
+program on the caller's thread and compiles it on another; ``_compiled`` then
+collects it instead of compiling it again. ``while_compiling`` runs host work
+(the command line's matplotlib warm-up) while a program compiles.
+"""
+
+import threading
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scenes import block_on_incline, jointed_tunnel
+
+import jaxdem
+from jaxdem import compile_cache, solver, substep
+from jaxdem import model as model_mod
+from jaxdem.increment import increment
+from jaxdem.scene import parse_scene
+
+
+@pytest.fixture
+def xla_compiles(monkeypatch):
+    """Every XLA compilation made through the registry, as a list of thread names."""
+    calls = []
+    compile_ = compile_cache._xla_compile
+
+    def counted(lowered, quick=False):
+        calls.append(threading.current_thread().name)
+        return compile_(lowered, quick)
+
+    monkeypatch.setattr(compile_cache, "_xla_compile", counted)
+    return calls
+
+
+def test_a_prefetched_program_is_collected_not_compiled_again(xla_compiles):
+    f = jax.jit(lambda x: 2.0 * x + 1.0)
+    x = jnp.arange(7.0)  # a shape no other test compiles f for
+    compile_cache.prefetch(f, x)
+    compiled, _ = compile_cache._compiled(f, x)
+    np.testing.assert_array_equal(np.asarray(compiled(x)), 2.0 * np.arange(7.0) + 1.0)
+    again, waited = compile_cache._compiled(f, x)
+    assert again is compiled and waited == 0.0
+    assert len(xla_compiles) == 1 and xla_compiles[0].startswith("jaxdem-compile")
+    assert not compile_cache._PENDING
+
+
+def test_a_prefetch_that_fails_leaves_the_error_to_the_call_that_needs_it():
+    @jax.jit
+    def bad(x):
+        raise ValueError("no program for this")
+
+    x = jnp.zeros(3)
+    compile_cache.prefetch(bad, x)  # nothing raised here
+    with pytest.raises(ValueError, match="no program for this"):
+        compile_cache._compiled(bad, x)
+
+
+def test_host_work_runs_once_while_a_program_compiles(xla_compiles):
+    ran = []
+    done = threading.Event()
+
+    def task():
+        ran.append(threading.current_thread().name)
+        done.set()
+
+    compile_cache.while_compiling(task)
+    f = jax.jit(lambda x: jnp.sin(x) * 3.0)
+    compile_cache._compiled(f, jnp.zeros(11))
+    assert done.wait(10.0)
+    compile_cache._compiled(f, jnp.zeros(12))  # a second compilation: the task is spent
+    assert ran == ["jaxdem-host-task"] and len(xla_compiles) == 2
+
+
+def test_the_increment_traces_its_sub_step_once(monkeypatch):
+    """The loop's carry shapes and its body share one trace of the sub-step (a second trace
+    cost 0.1-0.2 s of every cold run)."""
+    traced = []
+    prepare = substep._prepare
+
+    def counted(*args):
+        traced.append(1)
+        return prepare(*args)
+
+    monkeypatch.setattr(substep, "_prepare", counted)
+    jax.clear_caches()
+    scene = parse_scene(block_on_incline(30.0, 35.0))
+    model, state, layout = model_mod.build(scene)
+    data = solver.scene_data(scene, layout)
+    loads, _ = solver._Driver(model, state, layout, data, None).loads(data.weight + data.traction)
+    increment.lower(model, state, loads)
+    assert len(traced) == 1
+
+
+def test_an_in_situ_solve_compiles_its_increment_beside_the_preload(xla_compiles, monkeypatch):
+    """With in-situ stress the increment is compiled on the background thread while the
+    preload compiles and runs, once, and the answer is the one the solver gives without it."""
+    monkeypatch.setattr(compile_cache, "_program_dir", lambda: None)  # compile, do not load
+    compile_cache._COMPILED.clear()
+    d = jointed_tunnel(water=False, bolts=False)
+    scene = parse_scene(d)
+    assert scene.in_situ is not None
+    result = jaxdem.solve(scene)
+    assert result.converged
+    assert not compile_cache._PENDING
+    assert sum(name.startswith("jaxdem-compile") for name in xla_compiles) == 1
+    compiles = len(xla_compiles)
+
+    compile_cache._COMPILED.clear()
+    monkeypatch.setattr(solver, "prefetch", lambda *args, **kwargs: None)
+    plain = jaxdem.solve(scene)
+    assert all(not name.startswith("jaxdem-compile") for name in xla_compiles[compiles:])
+    for name, m in result.monitors.items():
+        for k, v in m.items():
+            assert plain.monitors[name][k] == v, (name, k)
