@@ -310,7 +310,7 @@ def prefetch(fn, *args, quick: bool = False, **static) -> None:
     waiting on a machine with a second core. Tracing stays on the caller's
     thread: it needs the lock, and sharing it would only slow both. The
     arguments need only have the shapes of the later call. Nothing is started
-    for a program already there.
+    for a program already there. One program is prefetched at a time.
     """
     key, leaves, tree = _key(fn, args, static, quick)
     with _LOCK:
@@ -327,6 +327,9 @@ def prefetch(fn, *args, quick: bool = False, **static) -> None:
         if not _BACKGROUND:
             _BACKGROUND.append(concurrent.futures.ThreadPoolExecutor(
                 max_workers=1, thread_name_prefix="jaxdem-compile"))
+        # One at a time: a program never collected (the preload grew the pair
+        # capacity, so the increment came with other shapes) is let go.
+        _PENDING.clear()
         _PENDING[key] = _BACKGROUND[0].submit(finish)
 
 

@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdem.linsolve import _assemble_dense, _host_matrix
+from jaxdem.linsolve import _assemble_dense, _blocks, _host_matrix
 from jaxdem.loads import _preload, _release
 from jaxdem.springs import _evaluate, _stiffness_terms, _Sub, _with_slip_coupling
 from jaxdem.state import Loads, Model, State
@@ -58,14 +58,13 @@ TANGENT_REFINEMENTS = 2
 :func:`_tangent_solve`): each multiplies the regularisation's error by eps / lambda."""
 
 
-def _host_tangent_solve(a, b, L, Rt, k, Kc, diag, pm, rhs):
+def _host_tangent_solve(rows, cols, blocks, pm, rhs):
     """:func:`_tangent_solve` on the host: SuperLU of K + eps M, refined on K; NaN if singular."""
     import scipy.sparse
     import scipy.sparse.linalg
 
-    a, b, L, Rt, k, Kc, diag, pm, rhs = (np.asarray(x) for x in (a, b, L, Rt, k, Kc, diag, pm,
-                                                                  rhs))
-    K = _host_matrix(a, b, L, Rt, k, Kc, diag)
+    pm, rhs = np.asarray(pm), np.asarray(rhs)
+    K = _host_matrix(rows, cols, blocks, rhs.shape[0])
     try:
         lu = scipy.sparse.linalg.splu(K + scipy.sparse.diags(pm, format="csc"),
                                       permc_spec="MMD_AT_PLUS_A")
@@ -109,9 +108,9 @@ def _tangent_solve(model: Model, sub: _Sub, terms, rhs):
             x = x + jax.scipy.linalg.lu_solve(lu, B - K @ x)
         x = jnp.where(jnp.all(jnp.isfinite(x)), x, jnp.nan)
     else:
-        Kc = sub.Kc if sub.Kc is not None else jnp.zeros((0, D, D), rhs.dtype)
+        rows, cols, blocks = _blocks(model, sub, a, b, L, Rt, k, diag)
         x = jax.pure_callback(_host_tangent_solve, jax.ShapeDtypeStruct(B.shape, B.dtype),
-                              a, b, L, Rt, k, Kc, diag, pm, B, vmap_method="sequential")
+                              rows, cols, blocks, pm, B, vmap_method="sequential")
     return x.T.reshape(rhs.shape)
 
 

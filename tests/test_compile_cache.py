@@ -38,6 +38,7 @@ def xla_compiles(monkeypatch):
 def test_a_prefetched_program_is_collected_not_compiled_again(xla_compiles):
     f = jax.jit(lambda x: 2.0 * x + 1.0)
     x = jnp.arange(7.0)  # a shape no other test compiles f for
+    compile_cache._PENDING.clear()
     compile_cache.prefetch(f, x)
     compiled, _ = compile_cache._compiled(f, x)
     np.testing.assert_array_equal(np.asarray(compiled(x)), 2.0 * np.arange(7.0) + 1.0)
@@ -45,6 +46,18 @@ def test_a_prefetched_program_is_collected_not_compiled_again(xla_compiles):
     assert again is compiled and waited == 0.0
     assert len(xla_compiles) == 1 and xla_compiles[0].startswith("jaxdem-compile")
     assert not compile_cache._PENDING
+
+
+def test_a_prefetched_program_never_collected_is_let_go():
+    """One program is prefetched at a time (the solver's prefetch is wasted when the preload
+    grows the pair capacity): an older one is dropped, not held for the process's life."""
+    f = jax.jit(lambda x: x - 1.0)
+    compile_cache.prefetch(f, jnp.zeros(5))
+    compile_cache.prefetch(f, jnp.zeros(6))
+    assert len(compile_cache._PENDING) == 1
+    compiled, _ = compile_cache._compiled(f, jnp.zeros(6))
+    assert not compile_cache._PENDING
+    np.testing.assert_array_equal(np.asarray(compiled(jnp.ones(6))), np.zeros(6))
 
 
 def test_a_prefetch_that_fails_leaves_the_error_to_the_call_that_needs_it():
@@ -102,6 +115,7 @@ def test_an_in_situ_solve_compiles_its_increment_beside_the_preload(xla_compiles
     d = jointed_tunnel(water=False, bolts=False)
     scene = parse_scene(d)
     assert scene.in_situ is not None
+    compile_cache._PENDING.clear()
     result = jaxdem.solve(scene)
     assert result.converged
     assert not compile_cache._PENDING
