@@ -97,6 +97,8 @@ def run(scene, model: Model, state: State, layout, data: Data, progress=None,
         if quick is None:
             quick = data.p == 0 and model.n_blocks * increment_count(scene, layout) <= QUICK_WORK
         driver = _Driver(model, state, layout, data, progress, quick)
+        if data.p == 0:
+            driver.start_compiling(data.weight + data.traction)
     d = driver
     in_situ = scene.in_situ
     N, D = model.n_blocks, model.ndof
@@ -287,6 +289,17 @@ class _Driver:
             k: jnp.zeros((p,) + getattr(state, k).shape, getattr(state, k).dtype)
             for k in STATE_FLOATS}
 
+    def start_compiling(self, force):
+        """Compile the increment on a background thread from now (a single solve).
+
+        Meanwhile this thread compiles the monitors' programs, and then the
+        in-situ preload (:meth:`preload`): on two cores neither waits for the
+        other. ``force`` (1 + p, N, D) gives the loads' shapes.
+        """
+        prefetch(increment, self.model, self.state, self.loads(force)[0], quick=self.quick)
+        if self.layout.monitors:
+            monitor_values(self.layout, self.state)
+
     def loads(self, force, water_y=None, water_scale=1.0):
         """Loads of an increment from (1 + p, ...) stacks, and their derivatives (or None)."""
         wy = self.water_y if water_y is None else water_y
@@ -352,10 +365,6 @@ class _Driver:
         stacks = (data.sigma, data.surface, data.gamma, data.k0)
         args = tuple(jnp.asarray(x[0], self.layout.dtype) for x in stacks)
         loads, dloads = self.loads(base)
-        if self.dstate is None:
-            # The first increment starts from a state of these shapes: compile it
-            # while the preload compiles and runs.
-            prefetch(increment, self.model, self.state, loads, quick=self.quick)
         while True:
             if self.dstate is None:
                 pre, dt = _compiled(_preload, self.model, self.state, loads, *args, mode=mode,
