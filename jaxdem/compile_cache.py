@@ -22,6 +22,12 @@ serialises without its kernels, and the copy fails when called: "Function ...
 not found"), so a program compiled before this store existed is stored the
 next time it is compiled afresh.
 
+Compilation beside other work: XLA compiles without Python's interpreter lock.
+:func:`prefetch` traces a program on the caller's thread and compiles it on a
+background one (the solver's increment, while the monitors' programs and the
+in-situ preload are compiled); :func:`_compiled` collects it. :func:`while_compiling`
+runs host work (the command line's matplotlib warm-up) once a compilation starts.
+
 Data flow: knows nothing of the solver; the host driver (:mod:`jaxdem.solver`)
 and :mod:`jaxdem.batch` compile through it.
 """
