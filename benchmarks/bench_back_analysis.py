@@ -217,6 +217,7 @@ def run(method, paths, start_u, seed, obs, ratio, target, budget):
                 maxiter=int(budget), polish=False, tol=0.0, x0=start_u)
     except Counter.Reached:
         pass
+    c.t_end = time.perf_counter()
     return c
 
 
@@ -266,7 +267,7 @@ def main(argv=None):
                     for k, s in enumerate(starts)]
             # A run that did not reach the target counts what it spent: a lower bound.
             equiv = [c.hit[0] if c.hit else c.equiv for c in runs]
-            wall = [c.hit[1] if c.hit else time.perf_counter() - c.t0 for c in runs]
+            wall = [c.hit[1] if c.hit else c.t_end - c.t0 for c in runs]
             reached = sum(c.hit is not None for c in runs)
             med = float(np.median(equiv))
             bound = reached <= len(runs) // 2  # the median itself is then a lower bound
