@@ -307,7 +307,7 @@ _PENDING: dict = {}  # key -> Future of a program compiling in the background
 _BACKGROUND: list = []  # the one worker thread's executor, made on first use
 
 
-def prefetch(fn, *args, quick: bool = False, **static) -> None:
+def prefetch(fn, *args, quick: bool = False, **static) -> float:
     """Trace ``fn`` for these shapes now and compile it on a background thread.
 
     :func:`_compiled` collects the program. XLA compiles without Python's
@@ -317,19 +317,23 @@ def prefetch(fn, *args, quick: bool = False, **static) -> None:
     thread: it needs the lock, and sharing it would only slow both. The
     arguments need only have the shapes of the later call. Nothing is started
     for a program already there. One program is prefetched at a time.
+
+    Returns the seconds this call spent (tracing, or loading a stored
+    program); 0.0 when the program was there already.
     """
     key, leaves, tree = _key(fn, args, static, quick)
     with _LOCK:
         if key in _COMPILED or key in _PENDING:
-            return
+            return 0.0
+    t0 = time.perf_counter()
     try:
         compiled, finish = _lower(fn, args, static, quick, leaves, tree)
     except Exception:  # noqa: BLE001 - the call that needs the program reports it
-        return
+        return time.perf_counter() - t0
+    if compiled is not None:
+        _remember(key, compiled)
+        return time.perf_counter() - t0
     with _LOCK:
-        if compiled is not None:
-            _COMPILED[key] = compiled
-            return
         if not _BACKGROUND:
             _BACKGROUND.append(concurrent.futures.ThreadPoolExecutor(
                 max_workers=1, thread_name_prefix="jaxdem-compile"))
@@ -337,6 +341,18 @@ def prefetch(fn, *args, quick: bool = False, **static) -> None:
         # capacity, so the increment came with other shapes) is let go.
         _PENDING.clear()
         _PENDING[key] = _BACKGROUND[0].submit(finish)
+    return time.perf_counter() - t0
+
+
+def _remember(key, compiled) -> None:
+    """Keep ``compiled`` under ``key``; beyond :data:`MAX_COMPILED` drop the least recently used."""
+    with _LOCK:
+        _COMPILED[key] = compiled
+        dropped = len(_COMPILED) > MAX_COMPILED
+        if dropped:
+            _COMPILED.popitem(last=False)
+    if dropped:
+        jax.clear_caches()
 
 
 def _compiled(fn, *args, quick: bool = False, **static):
@@ -373,11 +389,5 @@ def _compiled(fn, *args, quick: bool = False, **static):
         compiled, finish = _lower(fn, args, static, quick, leaves, tree)
         if compiled is None:
             compiled = finish()
-    with _LOCK:
-        _COMPILED[key] = compiled
-        dropped = len(_COMPILED) > MAX_COMPILED
-        if dropped:
-            _COMPILED.popitem(last=False)
-    if dropped:
-        jax.clear_caches()
+    _remember(key, compiled)
     return compiled, time.perf_counter() - t0

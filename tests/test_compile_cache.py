@@ -123,9 +123,31 @@ def test_an_in_situ_solve_compiles_its_increment_beside_the_preload(xla_compiles
     compiles = len(xla_compiles)
 
     compile_cache._COMPILED.clear()
-    monkeypatch.setattr(solver, "prefetch", lambda *args, **kwargs: None)
+    monkeypatch.setattr(solver, "prefetch", lambda *args, **kwargs: 0.0)
     plain = jaxdem.solve(scene)
     assert all(not name.startswith("jaxdem-compile") for name in xla_compiles[compiles:])
     for name, m in result.monitors.items():
         for k, v in m.items():
             assert plain.monitors[name][k] == v, (name, k)
+
+
+def test_a_prefetched_program_counts_in_the_bound_of_kept_programs(monkeypatch, tmp_path):
+    """A program that ``prefetch`` loads from the disk store is kept under the same bound
+    (MAX_COMPILED) as one that ``_compiled`` compiles; the time the prefetch took is returned
+    (the solver counts it as compilation) and is 0.0 when the program was there."""
+    monkeypatch.setattr(compile_cache, "_program_dir", lambda: tmp_path)
+    monkeypatch.setattr(compile_cache, "MAX_COMPILED", 1)
+    monkeypatch.setattr(compile_cache, "_COMPILED", type(compile_cache._COMPILED)())
+    f = jax.jit(lambda x: x * x)
+    compile_cache.on_disk("test_square")(f)
+    try:
+        x, y = jnp.zeros(13), jnp.zeros(14)
+        compile_cache._compiled(f, x)  # compiled and stored
+        compile_cache._COMPILED.clear()
+        assert compile_cache.prefetch(f, y) > 0.0  # traced, compiles in the background
+        compile_cache._compiled(f, y)
+        assert compile_cache.prefetch(f, x) > 0.0  # loaded from the store
+        assert len(compile_cache._COMPILED) == 1
+        assert compile_cache.prefetch(f, x) == 0.0  # there already
+    finally:
+        compile_cache._ON_DISK.pop(f, None)
