@@ -54,9 +54,9 @@ import numpy as np
 
 from inverse.fit import (ADAM_LEARNING_RATE, CONVERGED, DEFAULT_TOLERANCE, LM_MAX_STEP,
                          NO_EQUILIBRIUM_AT_START, OPTIMIZERS, RESTARTS, Objective, Run,
-                         Transform, check_bounds, check_fit, finite_entry, make_transform,
-                         restart_points, restore, run_adam, run_gauss_newton, run_lbfgs,
-                         scales, start_z)
+                         Transform, check_bounds, check_fit, finite_entry, logit,
+                         make_transform, restart_points, restore, run_adam, run_gauss_newton,
+                         run_lbfgs, scales, start_z)
 from inverse.observations import (Observation, as_observations, checked_observations,
                                   observed_model, read_observations, resolve_stages)
 from inverse.report import BackAnalysis
@@ -240,7 +240,7 @@ def back_analyse(
         while len(runs) <= restarts and not min(s["misfit"] for s in starts) <= limit:
             current += 1
             u = next(candidates)
-            run, line, _ = local_fit(np.log(u) - np.log1p(-u))
+            run, line, _ = local_fit(logit(u))
             runs.append(run)
             starts.append(line)
     best = min(range(len(runs)), key=lambda k: starts[k]["misfit"])

@@ -177,14 +177,18 @@ def make_transform(paths: list[str], theta0: np.ndarray,
     return Transform(lo=lo, hi=hi, log=(lo > 0.0) & (hi > 0.0))
 
 
+def logit(u: np.ndarray) -> np.ndarray:
+    """z of a fraction u of the range: the inverse of :meth:`Transform.fraction`."""
+    return np.log(u) - np.log1p(-u)
+
+
 def start_z(theta0: np.ndarray, transform: Transform) -> np.ndarray:
     """z of the starting values; one on a bound (a cohesion starting at its lower bound 0)
     starts START_INSIDE of the range inside it, where sigmoid(z) still has a slope."""
     a, b = transform._ends
     with np.errstate(divide="ignore", invalid="ignore"):
         t = np.where(transform.log, np.log(np.abs(theta0)), theta0)
-    u = np.clip((t - a) / (b - a), START_INSIDE, 1.0 - START_INSIDE)
-    return np.log(u) - np.log1p(-u)
+    return logit(np.clip((t - a) / (b - a), START_INSIDE, 1.0 - START_INSIDE))
 
 
 def scales(theta: np.ndarray, transform: Transform) -> np.ndarray:
@@ -467,8 +471,7 @@ def run_gauss_newton(objective: Objective, z0: np.ndarray, max_iterations: int,
         return r, (jac / objective.std[:, None]) * dtheta_du
 
     def z_of(u):
-        u = np.clip(u, U_EDGE, 1.0 - U_EDGE)
-        return np.log(u) - np.log1p(-u)
+        return logit(np.clip(u, U_EDGE, 1.0 - U_EDGE))
 
     def held(u, g):
         """Parameters on a bound that the gradient pushes further out."""
@@ -570,7 +573,7 @@ def restore(objective: Objective, z0: np.ndarray, paths: list[str]) -> tuple[np.
     u0 = tr.fraction(z0)
     for t in RESTORE_STEPS:
         u = u0 + t * (0.5 - u0)
-        z = np.log(u) - np.log1p(-u)
+        z = logit(u)
         theta = tr.theta(z)
         if finite_entry(objective.evaluate(theta, derivatives=True)):
             moved = ", ".join(f"{p} = {v:.4g}" for p, v in zip(paths, theta, strict=True))
