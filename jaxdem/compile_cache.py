@@ -49,6 +49,11 @@ from pathlib import Path
 import jax
 
 _COMPILED: collections.OrderedDict = collections.OrderedDict()
+_PENDING: dict = {}  # key -> Future of a program compiling in the background (prefetch)
+_BACKGROUND: list = []  # the one worker thread's executor, made on first use
+_HOST_TASKS: list = []  # host work waiting for the next compilation (while_compiling)
+_LOCK = threading.Lock()  # guards these and COMPILE_TIMES: the background threads use them
+
 MAX_COMPILED = 16
 """Compiled increments kept in memory (least recently used dropped first)."""
 
@@ -261,9 +266,6 @@ def _lower(fn, args, static, quick, leaves, tree):
     return None, finish
 
 
-_HOST_TASKS: list = []
-
-
 def while_compiling(task) -> None:
     """Run ``task()`` on a background thread once the next program starts compiling.
 
@@ -300,11 +302,6 @@ def _count(lower_s: float, compile_s: float) -> None:
     with _LOCK:
         COMPILE_TIMES["lower_s"] += lower_s
         COMPILE_TIMES["compile_s"] += compile_s
-
-
-_LOCK = threading.Lock()
-_PENDING: dict = {}  # key -> Future of a program compiling in the background
-_BACKGROUND: list = []  # the one worker thread's executor, made on first use
 
 
 def prefetch(fn, *args, quick: bool = False, **static) -> float:
