@@ -18,12 +18,17 @@ same 5 random points (uniform in those coordinates, 10%-90% of each range):
   (Levenberg-Marquardt on the Jacobian that each solve with sensitivities gives);
 - ``L-BFGS``: ``back_analyse(optimizer="lbfgs")`` (optax, same gradients);
 - ``LM, FD``: SciPy's Levenberg-Marquardt (``least_squares(method="lm")``) with
-  its own forward-difference Jacobian (p + 1 plain solves each);
+  its own forward-difference Jacobian (p + 1 plain solves each), relative step
+  ``FD_STEP`` = 1e-3 (SciPy's default, 1.5e-8, is below the solver's own noise: the
+  solves converge to 1e-9, so that Jacobian is noise and MINPACK stops at once);
 - ``Nelder-Mead``: SciPy's simplex on the misfit;
 - ``DE``: SciPy's ``differential_evolution`` (population 15 p, seed = start no.).
 
 Each is charged in forward-solve equivalents: a plain solve counts 1, a solve with
-sensitivities its measured cost in plain solves (median of 9 pairs). The target
+sensitivities its cost in plain solves (median of 9 pairs, measured at the start of
+each p; ``--ratio R`` fixes it instead, for runs on a loaded machine). The counts of
+plain solves and of solves with sensitivities are printed too, so that the figures can
+be priced again at any ratio. The target
 misfit is the lowest one any Gauss-Newton run reached, plus 1e-3 of it (and 1e-6):
 "the same misfit". A method stops as soon as it meets the target, or at its budget
 (``--budget`` solves; for Nelder-Mead and DE that is then a lower bound on what it
@@ -33,7 +38,7 @@ ratio against Gauss-Newton is then known to exceed that (the targets are 20x and
 and solving on would only cost time.
 
     python benchmarks/bench_back_analysis.py [--params 2 4 6] [--starts 5] [--budget 1500]
-        [--decide-at 120]
+        [--decide-at 120] [--methods ...] [--ratio R]
 """
 
 from __future__ import annotations
@@ -68,6 +73,7 @@ PARAMS = {
     "joints.set2.friction_deg": (30.0, 20.0, 40.0, False),
     "in_situ.k0": (0.8, 0.4, 1.6, False),
 }
+FD_STEP = 1e-3  # LM, FD: relative difference step in the logit coordinates
 
 
 def scene(values=None):
@@ -133,6 +139,7 @@ class Counter:
         self.std = np.array([o.std for o in obs])
         self.problem, self.ratio, self.target, self.budget = problem, ratio, target, budget
         self.equiv, self.best, self.hit = 0.0, np.inf, None
+        self.solves = [0, 0]  # plain solves, solves with sensitivities
         self.outcome = ""  # how back_analyse ended (Gauss-Newton and L-BFGS)
         self.local_fits = 0  # back_analyse's local fits (more than 1 after a restart)
         self.t0 = time.perf_counter()
@@ -150,10 +157,11 @@ class Counter:
         y, J = self._evaluate(theta, jacobian)
         if cached is None or (jacobian and cached[1] is None):
             self.equiv += self.ratio if jacobian else 1.0
+            self.solves[int(jacobian)] += 1
         m = self.misfit_of(y)
         self.best = min(self.best, m)
         if self.hit is None and m <= self.target:
-            self.hit = (self.equiv, time.perf_counter() - self.t0)
+            self.hit = (self.equiv, time.perf_counter() - self.t0, tuple(self.solves))
         return y, J
 
     def misfit(self, theta):
@@ -207,7 +215,8 @@ def run(method, paths, start_u, seed, obs, ratio, target, budget):
             c.local_fits = len(fit.starts)
         elif method == "LM, FD":
             scipy.optimize.least_squares(lambda z: c.residuals(tr.theta_z(z)), z0, method="lm",
-                                         max_nfev=int(budget), xtol=1e-12, ftol=1e-12)
+                                         max_nfev=int(budget), xtol=1e-12, ftol=1e-12,
+                                         diff_step=FD_STEP)
         elif method == "Nelder-Mead":
             scipy.optimize.minimize(lambda z: c.misfit(tr.theta_z(z)), z0, method="Nelder-Mead",
                                     options=dict(maxfev=int(budget), xatol=1e-10, fatol=1e-12))
@@ -234,6 +243,9 @@ def main(argv=None):
                         help="stop Nelder-Mead and DE at this multiple of Gauss-Newton's "
                              "median fwd-equiv (default 120)")
     parser.add_argument("--methods", nargs="+", default=list(METHODS))
+    parser.add_argument("--ratio", type=float, default=None,
+                        help="cost of a solve with sensitivities in plain solves (default: "
+                             "measured, median of 9 pairs)")
     args = parser.parse_args(argv)
     print(f"machine: {platform.machine()}, {jax.devices()[0].device_kind}, "
           f"jax {jax.__version__}, numpy {np.__version__}")
@@ -246,9 +258,10 @@ def main(argv=None):
         starts = 0.1 + 0.8 * rng.random((args.starts, p))
         ref = fresh(paths, truth)
         t_plain, t_sens = gradient_cost(ref)
-        ratio = t_sens / t_plain
+        ratio = t_sens / t_plain if args.ratio is None else args.ratio
         print(f"\np = {p} ({', '.join(paths)}); {len(obs)} observations; plain solve "
-              f"{t_plain:.3f} s, with sensitivities {t_sens:.3f} s = {ratio:.2f} plain")
+              f"{t_plain:.3f} s, with sensitivities {t_sens:.3f} s = {t_sens / t_plain:.2f} "
+              f"plain; charged {ratio:.2f}{'' if args.ratio is None else ' (--ratio)'}")
         # The target: the best misfit Gauss-Newton reaches from any start.
         gn = [run("Gauss-Newton", paths, s, k, obs, ratio, -1.0, args.budget)
               for k, s in enumerate(starts)]
@@ -278,6 +291,8 @@ def main(argv=None):
                   f"{'>' if bound else ''}{med:.1f}  median wall "
                   f"{'>' if bound else ''}{float(np.median(wall)):.1f} s  per start: {cells}",
                   flush=True)
+            solves = [c.hit[2] if c.hit else tuple(c.solves) for c in runs]
+            print(f"    solves per start (plain, with sensitivities): {solves}", flush=True)
             if any(c.local_fits > 1 for c in runs):
                 print(f"    local fits per start (restarts after a rejected fit): "
                       f"{[c.local_fits for c in runs]}", flush=True)
