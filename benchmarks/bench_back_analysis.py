@@ -19,8 +19,10 @@ same 5 random points (uniform in those coordinates, 10%-90% of each range):
 - ``L-BFGS``: ``back_analyse(optimizer="lbfgs")`` (optax, same gradients);
 - ``LM, FD``: SciPy's Levenberg-Marquardt (``least_squares(method="lm")``) with
   its own forward-difference Jacobian (p + 1 plain solves each), relative step
-  ``FD_STEP`` = 1e-3 (SciPy's default, 1.5e-8, is below the solver's own noise: the
-  solves converge to 1e-9, so that Jacobian is noise and MINPACK stops at once);
+  ``FD_STEP`` = 1e-3 (SciPy's default, 1.5e-8, is close to the solver's own noise: the
+  solves converge to 1e-9). At a start without equilibrium its residuals are the
+  placeholder 1e6, the difference Jacobian is zero and MINPACK stops after p + 1 solves;
+  Gauss-Newton first moves such a start towards the centre of the bounds;
 - ``Nelder-Mead``: SciPy's simplex on the misfit;
 - ``DE``: SciPy's ``differential_evolution`` (population 15 p, seed = start no.).
 
