@@ -140,8 +140,9 @@ class Counter:
         self.observed = np.array([o.value for o in obs])
         self.std = np.array([o.std for o in obs])
         self.problem, self.ratio, self.target, self.budget = problem, ratio, target, budget
-        self.equiv, self.best, self.hit = 0.0, np.inf, None
         self.solves = [0, 0]  # plain solves, solves with sensitivities
+        self.best = np.inf
+        self.hit = None  # (solves, wall time) when the misfit first met the target
         self.outcome = ""  # how back_analyse ended (Gauss-Newton and L-BFGS)
         self.local_fits = 0  # back_analyse's local fits (more than 1 after a restart)
         self.t0 = time.perf_counter()
@@ -158,13 +159,20 @@ class Counter:
         cached = self.problem._cache.get(np.asarray(theta, float).tobytes())
         y, J = self._evaluate(theta, jacobian)
         if cached is None or (jacobian and cached[1] is None):
-            self.equiv += self.ratio if jacobian else 1.0
             self.solves[int(jacobian)] += 1
         m = self.misfit_of(y)
         self.best = min(self.best, m)
         if self.hit is None and m <= self.target:
-            self.hit = (self.equiv, time.perf_counter() - self.t0, tuple(self.solves))
+            self.hit = (tuple(self.solves), time.perf_counter() - self.t0)
         return y, J
+
+    def equiv_of(self, solves):
+        """Forward-solve equivalents of (plain solves, solves with sensitivities)."""
+        return solves[0] + self.ratio * solves[1]
+
+    @property
+    def equiv(self):
+        return self.equiv_of(self.solves)
 
     def misfit(self, theta):
         m = self.misfit_of(self.evaluate(theta)[0])
@@ -281,7 +289,8 @@ def main(argv=None):
             runs = [run(method, paths, s, k, obs, ratio, target, budget)
                     for k, s in enumerate(starts)]
             # A run that did not reach the target counts what it spent: a lower bound.
-            equiv = [c.hit[0] if c.hit else c.equiv for c in runs]
+            solves = [c.hit[0] if c.hit else tuple(c.solves) for c in runs]
+            equiv = [c.equiv_of(n) for c, n in zip(runs, solves, strict=True)]
             wall = [c.hit[1] if c.hit else c.t_end - c.t0 for c in runs]
             reached = sum(c.hit is not None for c in runs)
             med = float(np.median(equiv))
@@ -293,7 +302,6 @@ def main(argv=None):
                   f"{'>' if bound else ''}{med:.1f}  median wall "
                   f"{'>' if bound else ''}{float(np.median(wall)):.1f} s  per start: {cells}",
                   flush=True)
-            solves = [c.hit[2] if c.hit else tuple(c.solves) for c in runs]
             print(f"    solves per start (plain, with sensitivities): {solves}", flush=True)
             if any(c.local_fits > 1 for c in runs):
                 print(f"    local fits per start (restarts after a rejected fit): "
