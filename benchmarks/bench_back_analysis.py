@@ -65,6 +65,7 @@ the smallest of what those runs spent.
 from __future__ import annotations
 
 import argparse
+import logging
 import platform
 import sys
 import time
@@ -289,6 +290,9 @@ def main(argv=None):
                         help="cost of a solve with sensitivities in plain solves (default: "
                              "measured, median of 9 pairs)")
     args = parser.parse_args(argv)
+    # A run is stopped by raising Counter.Reached inside the solve; under L-BFGS that is
+    # inside a jax.pure_callback, which logs every such raise with its traceback.
+    logging.getLogger("jax._src.callback").setLevel(logging.CRITICAL)
     decide_at = dict(zip(("Nelder-Mead", "DE"), args.decide_at * 2 if len(args.decide_at) == 1
                          else args.decide_at, strict=True))
     print(f"machine: {platform.machine()}, {jax.devices()[0].device_kind}, "
@@ -374,7 +378,7 @@ def report(p, method, view, runs, hits, n_starts):
     hi = float(np.median([e if h else np.inf for e, h in zip(equiv, hits, strict=True)]
                          + [np.inf] * len(missing)))
     med, bound = lo, hi > lo
-    cells = " ".join(f"{e:>7.1f}" if h else f"{'>' + str(int(e)):>7}"
+    cells = " ".join(f"{e:>7.1f}" if h else f"{'>' + format(e, '.1f'):>7}"
                      for e, h in zip(equiv, hits, strict=True))
     print(f"p={p} [{view}] {method:<13} reached {reached}/{n_starts}  median fwd-equiv "
           f"{'>' if bound else ''}{med:.1f}  median wall "
