@@ -334,9 +334,15 @@ def main(argv=None):
                            if "Gauss-Newton" in m and not m["Gauss-Newton"][1]]
                 gn_median = max(gn_meds) if gn_meds else float(np.median([c.equiv for c in gn]))
                 budget = min(budget, decide_at[method] * gn_median)
-            runs = gn if method == "Gauss-Newton" else \
-                [run(method, paths, s, k, obs, ratio, target, budget, args.gn_iterations)
-                 for k, s in enumerate(starts[:args.de_starts if method == "DE" else None])]
+            runs = gn if method == "Gauss-Newton" else []
+            for k, s in enumerate(starts[:args.de_starts if method == "DE" else None]):
+                if method == "Gauss-Newton":
+                    break
+                runs.append(run(method, paths, s, k, obs, ratio, target, budget,
+                                args.gn_iterations))
+                c = runs[-1]  # as it ends: a long run can be read before the method's table
+                print(f"    {method} start {k}: solves {tuple(c.solves)}, best misfit "
+                      f"{c.best:.6g}, {c.t_end - c.t0:.0f} s", flush=True)
             for view, targets in views.items():
                 hits = [c.first_hit(t) for c, t in zip(runs, targets, strict=False)]
                 medians[view][method] = report(p, method, view, runs, hits, len(starts))
