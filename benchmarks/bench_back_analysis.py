@@ -55,11 +55,15 @@ ratio against Gauss-Newton is then known to exceed that (the targets are 20x and
 and solving on would only cost time. ``--de-starts N`` runs DE from the first N starts
 only; the starts not run count as 0 in the median (a lower bound), so when DE reaches
 the target from none of N > starts / 2 runs, the median over all starts still exceeds
-the smallest of what those runs spent.
+the smallest of what those runs spent. ``--de-only K [K ...]`` runs DE from those starts
+only (numbered from 0), so that a long run can be finished in another process; its
+counts are deterministic (seeded), so rows from such runs with the same ``--ratio``
+join into one table. A median that the runs do not decide is printed as the range it
+lies in: "lo to hi", ">lo" (no upper bound), or "undecided" (too few starts run).
 
     python benchmarks/bench_back_analysis.py [--params 2 4 6] [--starts 5] [--budget 1500]
         [--decide-at 120 | --decide-at NM DE] [--methods ...] [--ratio R]
-        [--gn-iterations 50] [--de-starts N]
+        [--gn-iterations 50] [--de-starts N | --de-only K ...]
 """
 
 from __future__ import annotations
@@ -282,6 +286,8 @@ def main(argv=None):
     parser.add_argument("--de-starts", type=int, default=None,
                         help="run DE from the first N starts only (when N > starts / 2 and "
                              "none reaches the target, the median over all starts is decided)")
+    parser.add_argument("--de-only", type=int, nargs="+", default=None,
+                        help="run DE from these starts only (numbered from 0)")
     parser.add_argument("--gn-iterations", type=int, default=50,
                         help="Gauss-Newton and L-BFGS: iterations per local fit "
                              "(default 50, back_analyse's)")
@@ -331,20 +337,24 @@ def main(argv=None):
                 # Decided in every view with a measured Gauss-Newton median (the larger
                 # one); its whole runs when it was not reported.
                 gn_meds = [m["Gauss-Newton"][0] for m in medians.values()
-                           if "Gauss-Newton" in m and not m["Gauss-Newton"][1]]
+                           if "Gauss-Newton" in m and m["Gauss-Newton"][0] == m["Gauss-Newton"][1]]
                 gn_median = max(gn_meds) if gn_meds else float(np.median([c.equiv for c in gn]))
                 budget = min(budget, decide_at[method] * gn_median)
+            which = range(len(starts))
+            if method == "DE" and args.de_only is not None:
+                which = args.de_only
+            elif method == "DE" and args.de_starts is not None:
+                which = range(args.de_starts)
             runs = gn if method == "Gauss-Newton" else []
-            for k, s in enumerate(starts[:args.de_starts if method == "DE" else None]):
-                if method == "Gauss-Newton":
-                    break
-                runs.append(run(method, paths, s, k, obs, ratio, target, budget,
+            for k in which if method != "Gauss-Newton" else ():
+                runs.append(run(method, paths, starts[k], k, obs, ratio, target, budget,
                                 args.gn_iterations))
                 c = runs[-1]  # as it ends: a long run can be read before the method's table
                 print(f"    {method} start {k}: solves {tuple(c.solves)}, best misfit "
                       f"{c.best:.6g}, {c.t_end - c.t0:.0f} s", flush=True)
+            ran = list(range(len(starts))) if method == "Gauss-Newton" else list(which)
             for view, targets in views.items():
-                hits = [c.first_hit(t) for c, t in zip(runs, targets, strict=False)]
+                hits = [c.first_hit(targets[k]) for c, k in zip(runs, ran, strict=True)]
                 medians[view][method] = report(p, method, view, runs, hits, len(starts))
             for k, c in enumerate(runs):
                 if c.hit is None and c.outcome:
@@ -356,22 +366,32 @@ def main(argv=None):
         for view, meds in medians.items():
             if "Gauss-Newton" not in meds:
                 continue
-            gnm, gn_bound = meds["Gauss-Newton"]
-            for method, (med, bound) in meds.items():
+            gn_lo, gn_hi = meds["Gauss-Newton"]
+            for method, (lo, hi) in meds.items():
                 if method == "Gauss-Newton":
                     continue
                 ratio_text = "undetermined (Gauss-Newton's median is a lower bound)" \
-                    if gn_bound else f"{'>' if bound else ''}{med / gnm:.1f}x"
+                    if gn_hi > gn_lo else describe(lo / gn_lo, hi / gn_lo) + "x"
                 print(f"p={p} [{view}] {method} / Gauss-Newton (median fwd-equiv): "
                       f"{ratio_text}", flush=True)
 
 
+def describe(lo, hi):
+    """A median known to lie in [lo, hi]: "x", ">lo", "lo to hi", or "undecided"."""
+    if hi == lo:
+        return f"{lo:.1f}"
+    if lo == 0.0:
+        return "undecided"
+    return f">{lo:.1f}" if hi == np.inf else f"{lo:.1f} to {hi:.1f}"
+
+
 def report(p, method, view, runs, hits, n_starts):
-    """Print one method's figures against one view's targets; return (median, is a bound).
+    """Print one method's figures against one view's targets; return the bounds (lo, hi)
+    of its median over all starts (equal where the runs decide it).
 
     A run that did not reach its target counts what it spent (a lower bound). With
-    fewer runs than starts (``--de-starts``), the median is a lower bound unless the
-    runs made decide it.
+    fewer runs than starts (``--de-starts``, ``--de-only``), the median is a lower bound
+    unless the runs made decide it.
     """
     solves = [h[0] if h else tuple(c.solves) for c, h in zip(runs, hits, strict=True)]
     equiv = [c.equiv_of(n) for c, n in zip(runs, solves, strict=True)]
@@ -383,15 +403,13 @@ def report(p, method, view, runs, hits, n_starts):
     lo = float(np.median(equiv + missing))
     hi = float(np.median([e if h else np.inf for e, h in zip(equiv, hits, strict=True)]
                          + [np.inf] * len(missing)))
-    med, bound = lo, hi > lo
     cells = " ".join(f"{e:>7.1f}" if h else f"{'>' + format(e, '.1f'):>7}"
                      for e, h in zip(equiv, hits, strict=True))
     print(f"p={p} [{view}] {method:<13} reached {reached}/{n_starts}  median fwd-equiv "
-          f"{'>' if bound else ''}{med:.1f}  median wall "
-          f"{'>' if bound else ''}{float(np.median(wall)):.1f} s  per start: {cells}",
-          flush=True)
+          f"{describe(lo, hi)}  median wall {'>' if hi > lo else ''}"
+          f"{float(np.median(wall)):.1f} s  per start: {cells}", flush=True)
     print(f"    solves per start (plain, with sensitivities): {solves}", flush=True)
-    return med, bound
+    return lo, hi
 
 
 if __name__ == "__main__":
