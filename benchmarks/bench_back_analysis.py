@@ -296,6 +296,9 @@ def main(argv=None):
                         help="cost of a solve with sensitivities in plain solves (default: "
                              "measured, median of 9 pairs)")
     args = parser.parse_args(argv)
+    if args.de_only is not None and not all(0 <= k < args.starts for k in args.de_only):
+        parser.error(f"--de-only: start numbers run from 0 to {args.starts - 1} "
+                     f"(got {args.de_only})")
     # A run is stopped by raising Counter.Reached inside the solve; under L-BFGS that is
     # inside a jax.pure_callback, which logs every such raise with its traceback.
     logging.getLogger("jax._src.callback").setLevel(logging.CRITICAL)
@@ -371,18 +374,18 @@ def main(argv=None):
                 if method == "Gauss-Newton":
                     continue
                 ratio_text = "undetermined (Gauss-Newton's median is a lower bound)" \
-                    if gn_hi > gn_lo else describe(lo / gn_lo, hi / gn_lo) + "x"
+                    if gn_hi > gn_lo else describe(lo / gn_lo, hi / gn_lo, "x")
                 print(f"p={p} [{view}] {method} / Gauss-Newton (median fwd-equiv): "
                       f"{ratio_text}", flush=True)
 
 
-def describe(lo, hi):
+def describe(lo, hi, unit=""):
     """A median known to lie in [lo, hi]: "x", ">lo", "lo to hi", or "undecided"."""
     if hi == lo:
-        return f"{lo:.1f}"
+        return f"{lo:.1f}{unit}"
     if lo == 0.0:
         return "undecided"
-    return f">{lo:.1f}" if hi == np.inf else f"{lo:.1f} to {hi:.1f}"
+    return f">{lo:.1f}{unit}" if hi == np.inf else f"{lo:.1f} to {hi:.1f}{unit}"
 
 
 def report(p, method, view, runs, hits, n_starts):
