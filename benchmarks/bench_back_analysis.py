@@ -63,7 +63,7 @@ lies in: "lo to hi", ">lo" (no upper bound), or "undecided" (too few starts run)
 
     python benchmarks/bench_back_analysis.py [--params 2 4 6] [--starts 5] [--budget 1500]
         [--decide-at 120 | --decide-at NM DE] [--methods ...] [--ratio R]
-        [--gn-iterations 50] [--de-starts N | --de-only K ...]
+        [--gn-iterations 50] [--de-starts N | --de-only K ...] [--price-only]
 """
 
 from __future__ import annotations
@@ -292,10 +292,15 @@ def main(argv=None):
                         help="Gauss-Newton and L-BFGS: iterations per local fit "
                              "(default 50, back_analyse's)")
     parser.add_argument("--methods", nargs="+", default=list(METHODS))
+    parser.add_argument("--price-only", action="store_true",
+                        help="only measure the price of a solve with sensitivities per p "
+                             "(--params may also take 1, 3, 5)")
     parser.add_argument("--ratio", type=float, default=None,
                         help="cost of a solve with sensitivities in plain solves (default: "
                              "measured, median of 9 pairs)")
     args = parser.parse_args(argv)
+    if not all(1 <= q <= len(PARAMS) for q in args.params):
+        parser.error(f"--params: each p runs from 1 to {len(PARAMS)} (got {args.params})")
     if args.de_only is not None and not all(0 <= k < args.starts for k in args.de_only):
         parser.error(f"--de-only: start numbers run from 0 to {args.starts - 1} "
                      f"(got {args.de_only})")
@@ -319,6 +324,8 @@ def main(argv=None):
         print(f"\np = {p} ({', '.join(paths)}); {len(obs)} observations; plain solve "
               f"{t_plain:.3f} s, with sensitivities {t_sens:.3f} s = {t_sens / t_plain:.2f} "
               f"plain; charged {ratio:.2f}{'' if args.ratio is None else ' (--ratio)'}")
+        if args.price_only:
+            continue
         # The target: the best misfit Gauss-Newton reaches from any start; and, per
         # start, the misfit Gauss-Newton ends at from that start (a local minimum of its
         # own where it is higher). Gauss-Newton is charged what it had spent when its
