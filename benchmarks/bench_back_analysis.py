@@ -293,8 +293,8 @@ def main(argv=None):
                              "(default 50, back_analyse's)")
     parser.add_argument("--methods", nargs="+", default=list(METHODS))
     parser.add_argument("--price-only", action="store_true",
-                        help="only measure the price of a solve with sensitivities per p "
-                             "(--params may also take 1, 3, 5)")
+                        help="only measure the price of a solve with sensitivities, for "
+                             "each p of --params")
     parser.add_argument("--ratio", type=float, default=None,
                         help="cost of a solve with sensitivities in plain solves (default: "
                              "measured, median of 9 pairs)")
@@ -350,19 +350,21 @@ def main(argv=None):
                            if "Gauss-Newton" in m and m["Gauss-Newton"][0] == m["Gauss-Newton"][1]]
                 gn_median = max(gn_meds) if gn_meds else float(np.median([c.equiv for c in gn]))
                 budget = min(budget, decide_at[method] * gn_median)
-            which = range(len(starts))
+            ran = list(range(len(starts)))  # the starts this method runs from
             if method == "DE" and args.de_only is not None:
-                which = args.de_only
+                ran = list(args.de_only)
             elif method == "DE" and args.de_starts is not None:
-                which = range(args.de_starts)
-            runs = gn if method == "Gauss-Newton" else []
-            for k in which if method != "Gauss-Newton" else ():
-                runs.append(run(method, paths, starts[k], k, obs, ratio, target, budget,
-                                args.gn_iterations))
-                c = runs[-1]  # as it ends: a long run can be read before the method's table
-                print(f"    {method} start {k}: solves {tuple(c.solves)}, best misfit "
-                      f"{c.best:.6g}, {c.t_end - c.t0:.0f} s", flush=True)
-            ran = list(range(len(starts))) if method == "Gauss-Newton" else list(which)
+                ran = ran[:args.de_starts]
+            if method == "Gauss-Newton":
+                runs = gn
+            else:
+                runs = []
+                for k in ran:
+                    runs.append(run(method, paths, starts[k], k, obs, ratio, target, budget,
+                                    args.gn_iterations))
+                    c = runs[-1]  # as it ends: a long run can be read before the table
+                    print(f"    {method} start {k}: solves {tuple(c.solves)}, best misfit "
+                          f"{c.best:.6g}, {c.t_end - c.t0:.0f} s", flush=True)
             for view, targets in views.items():
                 hits = [c.first_hit(targets[k]) for c, k in zip(runs, ran, strict=True)]
                 medians[view][method] = report(p, method, view, runs, hits, len(starts))
