@@ -34,6 +34,26 @@ import jax.numpy as jnp
 from jaxdem.state import Model, State
 
 
+def _take(x, idx, axis):
+    """``jnp.take_along_axis`` with indices known to be in range (no fill, no mask).
+
+    Every index here (a chosen face, the next or previous vertex) is in range by
+    construction; the default mode's bounds test and fill would be evaluated
+    for each element, and again for each parameter's tangent.
+    """
+    return jnp.take_along_axis(x, idx, axis=axis, mode="promise_in_bounds")
+
+
+def _dot(x, y):
+    """x . y over the last axis of 2-vectors, as two products and a sum.
+
+    Not ``jnp.sum(x * y, axis=-1)``: XLA's CPU reduction over an axis of 2
+    costs several times the elementwise form, and its forward-mode tangents,
+    batched over p parameters, add one such reduction per parameter.
+    """
+    return x[..., 0] * y[..., 0] + x[..., 1] * y[..., 1]
+
+
 def edges(verts: jax.Array, nv: jax.Array):
     """Edge start points, end points, lengths, unit tangents and outward normals.
 
@@ -47,11 +67,11 @@ def edges(verts: jax.Array, nv: jax.Array):
     V = verts.shape[-2]
     k = jnp.arange(V)
     nxt = jnp.where(k + 1 < nv[..., None], k + 1, 0)
-    q1 = jnp.take_along_axis(verts, nxt[..., None], axis=-2)
+    q1 = _take(verts, nxt[..., None], axis=-2)
     d = q1 - verts
     # Padded edges have zero length: take the root of a safe value there, so
     # that derivatives stay finite (d sqrt(x) is infinite at x = 0).
-    d2 = jnp.sum(d * d, axis=-1)
+    d2 = _dot(d, d)
     length = jnp.where(d2 > 0, jnp.sqrt(jnp.where(d2 > 0, d2, 1.0)), 0.0)
     emask = k < nv[..., None]
     safe = jnp.where(emask & (length > 0), length, 1.0)
@@ -158,12 +178,12 @@ def broad_phase(model: Model, verts: jax.Array, capacity: int, alive: jax.Array)
     return pairs, count, cell_full
 
 
-def _vertex_edge(model: Model, xv, nvx, vmx, cx, ey, cy, not_dup):
+def _vertex_edge(model: Model, xv, nvx, vmx, cx, ex, ey, cy, not_dup):
     """Slots of the vertices of block X against the edges of block Y, per pair.
 
     Args:
       xv: (P, V, 2) vertices of X; nvx: (P,) counts; vmx: (P, V) mask.
-      cx, cy: (P, 2) centroids. ey: edges of Y (output of :func:`edges`).
+      cx, cy: (P, 2) centroids. ex, ey: edges of X and of Y (output of :func:`edges`).
       not_dup: (P, V) bool, False for vertices already counted from the other side.
     Returns a dict of (P, V) arrays: active, gap (m, negative = overlap), point,
     normal and tangent of the contacted face, edge index, share (m), h_x, h_y (m),
@@ -178,17 +198,17 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ey, cy, not_dup):
     # detection, jaxdem.differentiable) then carry no V^2 tangents.
     sg = jax.lax.stop_gradient
     rel = sg(xv)[:, :, None, :] - sg(q0)[:, None, :, :]  # (P, V, V_edges, 2)
-    d = jnp.sum(rel * sg(ny)[:, None, :, :], axis=-1)
+    d = _dot(rel, sg(ny)[:, None, :, :])
     d = jnp.where(emy[:, None, :], d, -jnp.inf)
     dmax = jnp.max(d, axis=-1)
     # Adjacent faces of each vertex of X: outgoing (v -> v+1) and incoming (v-1 -> v).
-    _, _, lx, tx, _, _ = edges(xv, nvx)
+    _, _, lx, tx, _, _ = ex
     k = jnp.arange(V)
     prev = jnp.where(k[None, :] > 0, k[None, :] - 1, nvx[:, None] - 1)
-    t_in = jnp.take_along_axis(tx, prev[..., None], axis=1)
-    l_in = jnp.take_along_axis(lx, prev, axis=1)
-    c_out = jnp.sum(sg(tx)[:, :, None, :] * sg(ty)[:, None, :, :], axis=-1)  # (P, V, Ve)
-    c_in = jnp.sum(sg(t_in)[:, :, None, :] * sg(ty)[:, None, :, :], axis=-1)
+    t_in = _take(tx, prev[..., None], axis=1)
+    l_in = _take(lx, prev, axis=1)
+    c_out = _dot(sg(tx)[:, :, None, :], sg(ty)[:, None, :, :])  # (P, V, Ve)
+    c_in = _dot(sg(t_in)[:, :, None, :], sg(ty)[:, None, :, :])
     par_out = c_out < -model.cos_parallel
     par_in = c_in < -model.cos_parallel
     # A vertex that overlaps near a corner is on the face anti-parallel to its own.
@@ -196,14 +216,13 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ey, cy, not_dup):
     # far face of a thin block is never near. The width is the depth of Y's
     # deepest vertex below its face (face, vertex) found on values, then
     # evaluated at that pair.
-    depth = -jnp.sum((sg(q0)[:, None, :, :] - sg(q0)[:, :, None, :]) * sg(ny)[:, :, None, :],
-                     axis=-1)
+    depth = -_dot(sg(q0)[:, None, :, :] - sg(q0)[:, :, None, :], sg(ny)[:, :, None, :])
     depth = jnp.where(emy[:, None, :] & emy[:, :, None], depth, -jnp.inf)  # (P, face, vertex)
     deepest = jnp.argmax(depth, axis=-1)  # (P, face)
     thin = jnp.argmin(jnp.where(emy, jnp.max(depth, axis=-1), jnp.inf), axis=-1)  # (P,)
-    pick = lambda x, i: jnp.take_along_axis(x, i[:, None, None], axis=1)[:, 0]  # noqa: E731
-    v_deep = jnp.take_along_axis(deepest, thin[:, None], axis=1)[:, 0]
-    width = -jnp.sum((pick(q0, v_deep) - pick(q0, thin)) * pick(ny, thin), axis=-1)
+    pick = lambda x, i: _take(x, i[:, None, None], axis=1)[:, 0]  # noqa: E731
+    v_deep = _take(deepest, thin[:, None], axis=1)[:, 0]
+    width = -_dot(pick(q0, v_deep) - pick(q0, thin), pick(ny, thin))
     window = jnp.minimum(model.margin, 0.5 * sg(width))
     near_face = d >= dmax[..., None] - window[:, None, None]
     # Among the near faces anti-parallel to one of the vertex's own, the least
@@ -215,13 +234,13 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ey, cy, not_dup):
     score = jnp.where(jnp.any(eligible, axis=-1, keepdims=True),
                       jnp.where(eligible, d, -jnp.inf), d)
     e = jnp.argmax(score, axis=-1).astype(jnp.int32)
-    take = lambda x: jnp.take_along_axis(x, e[..., None], axis=-1)[..., 0]  # noqa: E731
-    n = jnp.take_along_axis(ny, e[..., None], axis=1)
-    t = jnp.take_along_axis(ty, e[..., None], axis=1)
-    q = jnp.take_along_axis(q0, e[..., None], axis=1)
-    gap = jnp.sum((xv - q) * n, axis=-1)
-    s_e = jnp.sum((xv - q) * t, axis=-1)
-    L_e = jnp.take_along_axis(ly, e, axis=1)
+    take = lambda x: _take(x, e[..., None], axis=-1)[..., 0]  # noqa: E731
+    n = _take(ny, e[..., None], axis=1)
+    t = _take(ty, e[..., None], axis=1)
+    q = _take(q0, e[..., None], axis=1)
+    gap = _dot(xv - q, n)
+    s_e = _dot(xv - q, t)
+    L_e = _take(ly, e, axis=1)
     # A vertex a little past the end of a face still bears on it: blocks whose
     # corners coincide (a regular grid) shift by joint shear, and the contact
     # point must not hop to the other block's vertex and lose its history.
@@ -231,16 +250,16 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ey, cy, not_dup):
     pi = take(par_in)
     # Overlap of X's anti-parallel face with the contacted face, along that face.
     nxt = jnp.where(k[None, :] + 1 < nvx[:, None], k[None, :] + 1, 0)
-    other = jnp.where(po[..., None], jnp.take_along_axis(xv, nxt[..., None], axis=1),
-                      jnp.take_along_axis(xv, prev[..., None], axis=1))
+    other = jnp.where(po[..., None], _take(xv, nxt[..., None], axis=1),
+                      _take(xv, prev[..., None], axis=1))
     s0 = s_e
-    s1 = jnp.sum((other - q) * t, axis=-1)
+    s1 = _dot(other - q, t)
     lo = jnp.clip(jnp.minimum(s0, s1), 0.0, L_e)
     hi = jnp.clip(jnp.maximum(s0, s1), 0.0, L_e)
     overlap = hi - lo
     # Gap at the far end of the overlap (linear along the faces): faces within
     # 2 degrees of parallel can still be a sliver's width apart there.
-    d1 = jnp.sum((other - q) * n, axis=-1)
+    d1 = _dot(other - q, n)
     s_far = jnp.where(jnp.abs(lo - s0) > jnp.abs(hi - s0), lo, hi)
     run = jnp.where(jnp.abs(s1 - s0) > 0, s1 - s0, 1.0)
     far_gap = gap + (d1 - gap) * (s_far - s0) / run
@@ -259,9 +278,8 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ey, cy, not_dup):
     # overlap shortened X's h (and stiffened its spring) but not Y's, and a contact seen
     # from both blocks (coincident corners) got two different springs. A corner has
     # no face of its own on the contact: its h is to Y's face.
-    h_x = jnp.maximum(jnp.sum((cx[:, None, :] - jnp.where(parallel[..., None], xv, q)) * n,
-                              axis=-1), 0.0)
-    h_y = jnp.maximum(jnp.sum((q - cy[:, None, :]) * n, axis=-1), 0.0)
+    h_x = jnp.maximum(_dot(cx[:, None, :] - jnp.where(parallel[..., None], xv, q), n), 0.0)
+    h_y = jnp.maximum(_dot(q - cy[:, None, :], n), 0.0)
     return dict(active=active, gap=gap, point=xv, normal=n, tangent=t, edge=e,
                 share=share, h_x=h_x, h_y=h_y, own_edge=own_edge,
                 width_y=jnp.broadcast_to(width[:, None], gap.shape),
@@ -290,11 +308,13 @@ def narrow_phase(model: Model, verts, centroid, pairs):
     nva, nvb = model.nv[a], model.nv[b]
     vma = model.vmask[a] & valid[:, None]
     vmb = model.vmask[b] & valid[:, None]
-    ea, eb = edges(va, nva), edges(vb, nvb)
+    # Each block's edges once, then per pair: not twice per pair (primal and tangents).
+    e_all = edges(verts, model.nv)
+    ea, eb = (tuple(x[a] for x in e_all), tuple(x[b] for x in e_all))
     ca, cb = centroid[a], centroid[b]
     every = jnp.ones((P, V), bool)
-    s0 = _vertex_edge(model, va, nva, vma, ca, eb, cb, every)
-    s1 = _vertex_edge(model, vb, nvb, vmb, cb, ea, ca, every)
+    s0 = _vertex_edge(model, va, nva, vma, ca, ea, eb, cb, every)
+    s1 = _vertex_edge(model, vb, nvb, vmb, cb, eb, ea, ca, every)
     # A vertex of b at a contact point of a vertex of a (within that point's
     # overlap) is the same contact point, seen from both sides: each side's slot
     # takes half of it. Keeping one side's only (the lower block index's) made
@@ -304,7 +324,7 @@ def narrow_phase(model: Model, verts, centroid, pairs):
     dv = vb[:, :, None, :] - va[:, None, :, :]  # (P, V of b, V of a)
     reach = (1.5 * jnp.maximum(jnp.abs(s0["gap"])[:, None, :], jnp.abs(s1["gap"])[:, :, None])
              + model.span_tol)
-    same = ((jnp.sum(dv * dv, axis=-1) <= reach**2) & s0["active"][:, None, :]
+    same = ((_dot(dv, dv) <= reach**2) & s0["active"][:, None, :]
             & s1["active"][:, :, None])
     s0["share"] = jnp.where(jnp.any(same, axis=1), 0.5, 1.0) * s0["share"]
     s1["share"] = jnp.where(jnp.any(same, axis=2), 0.5, 1.0) * s1["share"]

@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdem.linsolve import _assemble_dense, _blocks, _host_matrix
+from jaxdem.linsolve import _assemble_dense, _blocks, _host_matrix, lu_factor, lu_solve
 from jaxdem.loads import _preload, _release
 from jaxdem.springs import _evaluate, _stiffness_terms, _Sub, _with_slip_coupling
 from jaxdem.state import Loads, Model, State
@@ -102,10 +102,10 @@ def _tangent_solve(model: Model, sub: _Sub, terms, rhs):
     B = rhs.reshape(p, N * D).T
     if model.linear_solver == "dense":
         K = _assemble_dense(model, sub, a, b, L, Rt, k, diag)
-        lu = jax.scipy.linalg.lu_factor(K + jnp.diag(pm))
-        x = jax.scipy.linalg.lu_solve(lu, B)
+        lu = lu_factor(K + jnp.diag(pm))
+        x = lu_solve(lu, B)
         for _ in range(TANGENT_REFINEMENTS):
-            x = x + jax.scipy.linalg.lu_solve(lu, B - K @ x)
+            x = x + lu_solve(lu, B - K @ x)
         x = jnp.where(jnp.all(jnp.isfinite(x)), x, jnp.nan)
     else:
         rows, cols, blocks = _blocks(model, sub, a, b, L, Rt, k, diag)
@@ -169,12 +169,19 @@ def _substep_tangent(model: Model, state: State, loads: Loads, dmodel, dstate, d
     _, lin_p, ev = jax.linearize(lambda mf, fl, sf: settle(mf, fl, sf, du), mf0, fl0, sf0,
                                  has_aux=True)
     dR, ds1, dsnap1 = jax.vmap(lin_p)(dmodel, dsub, dstate)
-    ddu = _tangent_solve(mdl, sub, _tangent_terms(mdl, sub, ev), dR)
-    ddu = jnp.where(converged, ddu, 0.0)
+    # Out here, its primal is the one above (XLA computes it once).
     _, lin_x = jax.linearize(lambda x: settle(mf0, fl0, sf0, x)[0][1:], du)
-    ds2, dsnap2 = jax.vmap(lin_x)(ddu)
-    add = lambda x, y: jax.tree.map(jnp.add, x, y)  # noqa: E731
-    return forward, (add(ds1, ds2), add(dsnap1, dsnap2))
+
+    def implicit():
+        ddu = _tangent_solve(mdl, sub, _tangent_terms(mdl, sub, ev), dR)
+        ds2, dsnap2 = jax.vmap(lin_x)(ddu)
+        add = lambda x, y: jax.tree.map(jnp.add, x, y)  # noqa: E731
+        return add(ds1, ds2), add(dsnap1, dsnap2)
+
+    # A sub-step cut short by the step length is held fixed (its du has no
+    # derivative): it needs neither the tangent's factorisation nor the chain
+    # through du. Two in three sub-steps of an excavation are such steps.
+    return forward, jax.lax.cond(converged, implicit, lambda: (ds1, dsnap1))
 
 
 @functools.partial(jax.jit, static_argnames=("mode",))
