@@ -178,16 +178,96 @@ def broad_phase(model: Model, verts: jax.Array, capacity: int, alive: jax.Array)
     return pairs, count, cell_full
 
 
-def _vertex_edge(model: Model, xv, nvx, vmx, cx, ex, ey, cy, not_dup):
+def block_widths(e_all):
+    """Each block's least width (N,): the depth of its deepest vertex below one of its faces.
+
+    The face and the vertex are found on values (a choice has no derivative);
+    the width is then evaluated at them. ``e_all``: :func:`edges` of every block.
+    """
+    q0, _, _, _, ny, em = e_all
+    sg = jax.lax.stop_gradient
+    depth = -_dot(sg(q0)[:, None, :, :] - sg(q0)[:, :, None, :], sg(ny)[:, :, None, :])
+    depth = jnp.where(em[:, None, :] & em[:, :, None], depth, -jnp.inf)  # (N, face, vertex)
+    deepest = jnp.argmax(depth, axis=-1)  # (N, face)
+    thin = jnp.argmin(jnp.where(em, jnp.max(depth, axis=-1), jnp.inf), axis=-1)  # (N,)
+    pick = lambda x, i: _take(x, i[:, None, None], axis=1)[:, 0]  # noqa: E731
+    v_deep = _take(deepest, thin[:, None], axis=1)[:, 0]
+    return -_dot(pick(q0, v_deep) - pick(q0, thin), pick(ny, thin))
+
+
+def _slot_geometry(model: Model, xv, x_next, x_prev, cx, cy, q, n, t, L_e, l_out, l_in, po,
+                   pi, inside=None):
+    """The differentiable part of slots whose face (and own face) are chosen.
+
+    A vertex xv of block X (its neighbours x_next, x_prev; its outgoing and
+    incoming faces' lengths l_out, l_in) bearing on the face of Y that starts at
+    q (normal n, tangent t, length L_e); po, pi: X's outgoing or incoming face
+    is anti-parallel to it (edge-to-edge). ``inside``: the vertex is inside
+    the face's span (None: from the values here). Any shapes that broadcast;
+    :func:`_vertex_edge` calls it per pair, :func:`slot_geometry` per slot.
+    Returns gap, s_e (the vertex's position along the face), share (before
+    halving), h_x, h_y, far_gap and far_point.
+    """
+    gap = _dot(xv - q, n)
+    s_e = _dot(xv - q, t)
+    # Overlap of X's anti-parallel face with the contacted face, along that face.
+    other = jnp.where(po[..., None], x_next, x_prev)
+    s0 = s_e
+    s1 = _dot(other - q, t)
+    lo = jnp.clip(jnp.minimum(s0, s1), 0.0, L_e)
+    hi = jnp.clip(jnp.maximum(s0, s1), 0.0, L_e)
+    overlap = hi - lo
+    # Gap at the far end of the overlap (linear along the faces): faces within
+    # 2 degrees of parallel can still be a sliver's width apart there.
+    d1 = _dot(other - q, n)
+    s_far = jnp.where(jnp.abs(lo - s0) > jnp.abs(hi - s0), lo, hi)
+    run = jnp.where(jnp.abs(s1 - s0) > 0, s1 - s0, 1.0)
+    far_gap = gap + (d1 - gap) * (s_far - s0) / run
+    corner = model.corner_share * jnp.minimum(l_out, l_in)
+    parallel = po | pi
+    # A corner bears on a face only inside its span: at the end of a face
+    # (faces meeting end to end at a mesh node) it touches without bearing.
+    if inside is None:
+        inside = (s_e > model.span_tol) & (s_e < L_e - model.span_tol)
+    share = jnp.where(parallel, 0.5 * overlap, jnp.where(inside, corner, 0.0))
+    # Each centroid's distance to its own side of an edge-to-edge contact: X's to its
+    # own face (through its vertex), Y's to its face. Measured both to Y's face, an
+    # overlap shortened X's h (and stiffened its spring) but not Y's, and a contact seen
+    # from both blocks (coincident corners) got two different springs. A corner has
+    # no face of its own on the contact: its h is to Y's face.
+    h_x = jnp.maximum(_dot(cx - jnp.where(parallel[..., None], xv, q), n), 0.0)
+    h_y = jnp.maximum(_dot(q - cy, n), 0.0)
+    return dict(gap=gap, s_e=s_e, share=share, h_x=h_x, h_y=h_y,
+                far_gap=jnp.where(parallel, far_gap, gap),
+                far_point=xv + jnp.where(parallel, s_far - s0, 0.0)[..., None] * t)
+
+
+def _slot_finish(model: Model, g, halved, X, Y, widths):
+    """share halved where both sides see the point; h_a, h_b with their floors.
+
+    A centroid on or behind the contact line (a corner reaching round the
+    end of a face) would give h = 0 and, against a rigid wall, an infinite
+    spring: h is at least a tenth of the block's size, its radius or, for an
+    elongated block, its least width (a 10 m x 0.01 m sliver lying on its
+    face has h = 5 mm, not 0.5 m: a floor on the radius would make it 100
+    times too soft).
+    """
+    return dict(share=jnp.where(halved, 0.5, 1.0) * g["share"],
+                h_a=jnp.maximum(g["h_x"], 0.1 * jnp.minimum(model.radius[X], widths[X])),
+                h_b=jnp.maximum(g["h_y"], 0.1 * jnp.minimum(model.radius[Y], widths[Y])))
+
+
+def _vertex_edge(model: Model, xv, nvx, vmx, cx, ex, ey, cy, width, not_dup):
     """Slots of the vertices of block X against the edges of block Y, per pair.
 
     Args:
       xv: (P, V, 2) vertices of X; nvx: (P,) counts; vmx: (P, V) mask.
       cx, cy: (P, 2) centroids. ex, ey: edges of X and of Y (output of :func:`edges`).
+      width: (P,) Y's least width (:func:`block_widths`).
       not_dup: (P, V) bool, False for vertices already counted from the other side.
     Returns a dict of (P, V) arrays: active, gap (m, negative = overlap), point,
     normal and tangent of the contacted face, edge index, share (m), h_x, h_y (m),
-    own_edge (X's face anti-parallel to it, or -1), width_y (m, Y's least width).
+    own_edge (X's face anti-parallel to it, or -1), far_gap and far_point.
     """
     q0, _, ly, ty, ny, emy = ey
     V = xv.shape[1]
@@ -205,6 +285,7 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ex, ey, cy, not_dup):
     _, _, lx, tx, _, _ = ex
     k = jnp.arange(V)
     prev = jnp.where(k[None, :] > 0, k[None, :] - 1, nvx[:, None] - 1)
+    nxt = jnp.where(k[None, :] + 1 < nvx[:, None], k[None, :] + 1, 0)
     t_in = _take(tx, prev[..., None], axis=1)
     l_in = _take(lx, prev, axis=1)
     c_out = _dot(sg(tx)[:, :, None, :], sg(ty)[:, None, :, :])  # (P, V, Ve)
@@ -213,16 +294,7 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ex, ey, cy, not_dup):
     par_in = c_in < -model.cos_parallel
     # A vertex that overlaps near a corner is on the face anti-parallel to its own.
     # "Near" is within the margin, but less than half of Y's least width: the
-    # far face of a thin block is never near. The width is the depth of Y's
-    # deepest vertex below its face (face, vertex) found on values, then
-    # evaluated at that pair.
-    depth = -_dot(sg(q0)[:, None, :, :] - sg(q0)[:, :, None, :], sg(ny)[:, :, None, :])
-    depth = jnp.where(emy[:, None, :] & emy[:, :, None], depth, -jnp.inf)  # (P, face, vertex)
-    deepest = jnp.argmax(depth, axis=-1)  # (P, face)
-    thin = jnp.argmin(jnp.where(emy, jnp.max(depth, axis=-1), jnp.inf), axis=-1)  # (P,)
-    pick = lambda x, i: _take(x, i[:, None, None], axis=1)[:, 0]  # noqa: E731
-    v_deep = _take(deepest, thin[:, None], axis=1)[:, 0]
-    width = -_dot(pick(q0, v_deep) - pick(q0, thin), pick(ny, thin))
+    # far face of a thin block is never near.
     window = jnp.minimum(model.margin, 0.5 * sg(width))
     near_face = d >= dmax[..., None] - window[:, None, None]
     # Among the near faces anti-parallel to one of the vertex's own, the least
@@ -238,53 +310,23 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ex, ey, cy, not_dup):
     n = _take(ny, e[..., None], axis=1)
     t = _take(ty, e[..., None], axis=1)
     q = _take(q0, e[..., None], axis=1)
-    gap = _dot(xv - q, n)
-    s_e = _dot(xv - q, t)
     L_e = _take(ly, e, axis=1)
+    po = take(par_out)
+    pi = take(par_in)
+    g = _slot_geometry(model, xv, _take(xv, nxt[..., None], axis=1),
+                       _take(xv, prev[..., None], axis=1), cx[:, None, :], cy[:, None, :], q, n,
+                       t, L_e, lx, l_in, po, pi)
     # A vertex a little past the end of a face still bears on it: blocks whose
     # corners coincide (a regular grid) shift by joint shear, and the contact
     # point must not hop to the other block's vertex and lose its history.
+    s_e = g.pop("s_e")
     in_span = (s_e >= -model.span_tol) & (s_e <= L_e + model.span_tol)
     near = vmx & not_dup & (dmax <= model.margin) & in_span
-    po = take(par_out)
-    pi = take(par_in)
-    # Overlap of X's anti-parallel face with the contacted face, along that face.
-    nxt = jnp.where(k[None, :] + 1 < nvx[:, None], k[None, :] + 1, 0)
-    other = jnp.where(po[..., None], _take(xv, nxt[..., None], axis=1),
-                      _take(xv, prev[..., None], axis=1))
-    s0 = s_e
-    s1 = _dot(other - q, t)
-    lo = jnp.clip(jnp.minimum(s0, s1), 0.0, L_e)
-    hi = jnp.clip(jnp.maximum(s0, s1), 0.0, L_e)
-    overlap = hi - lo
-    # Gap at the far end of the overlap (linear along the faces): faces within
-    # 2 degrees of parallel can still be a sliver's width apart there.
-    d1 = _dot(other - q, n)
-    s_far = jnp.where(jnp.abs(lo - s0) > jnp.abs(hi - s0), lo, hi)
-    run = jnp.where(jnp.abs(s1 - s0) > 0, s1 - s0, 1.0)
-    far_gap = gap + (d1 - gap) * (s_far - s0) / run
-    corner = model.corner_share * jnp.minimum(lx, l_in)
-    parallel = po | pi
-    # A corner bears on a face only inside its span: at the end of a face
-    # (faces meeting end to end at a mesh node) it touches without bearing.
-    inside = (s_e > model.span_tol) & (s_e < L_e - model.span_tol)
-    share = jnp.where(parallel, 0.5 * overlap, jnp.where(inside, corner, 0.0))
     # Faces that meet end to end (a diagonal neighbour on a grid) share no
     # length: no spring.
-    active = near & (share > 0)
+    active = near & (g["share"] > 0)
     own_edge = jnp.where(po, k[None, :], jnp.where(pi, prev, -1))
-    # Each centroid's distance to its own side of an edge-to-edge contact: X's to its
-    # own face (through its vertex), Y's to its face. Measured both to Y's face, an
-    # overlap shortened X's h (and stiffened its spring) but not Y's, and a contact seen
-    # from both blocks (coincident corners) got two different springs. A corner has
-    # no face of its own on the contact: its h is to Y's face.
-    h_x = jnp.maximum(_dot(cx[:, None, :] - jnp.where(parallel[..., None], xv, q), n), 0.0)
-    h_y = jnp.maximum(_dot(q - cy[:, None, :], n), 0.0)
-    return dict(active=active, gap=gap, point=xv, normal=n, tangent=t, edge=e,
-                share=share, h_x=h_x, h_y=h_y, own_edge=own_edge,
-                width_y=jnp.broadcast_to(width[:, None], gap.shape),
-                far_gap=jnp.where(parallel, far_gap, gap),
-                far_point=xv + jnp.where(parallel, s_far - s0, 0.0)[..., None] * t)
+    return dict(g, active=active, point=xv, normal=n, tangent=t, edge=e, own_edge=own_edge)
 
 
 def narrow_phase(model: Model, verts, centroid, pairs):
@@ -296,7 +338,9 @@ def narrow_phase(model: Model, verts, centroid, pairs):
     the centroids from the contact line, m, eqs. 6-7), ``joint`` (joint id),
     ``corner`` (a corner-to-edge point, not part of an edge-to-edge contact),
     ``far_gap`` (m, the gap at the other end of an edge-to-edge overlap) and
-    ``far_point`` (that end; the point itself for a corner).
+    ``far_point`` (that end; the point itself for a corner); and, for
+    :func:`slot_geometry`, ``own_edge`` (the vertex block's face anti-parallel
+    to the contacted one, or -1) and ``halved`` (both blocks see the point).
     """
     N = model.n_blocks
     P = pairs.shape[0]
@@ -308,13 +352,15 @@ def narrow_phase(model: Model, verts, centroid, pairs):
     nva, nvb = model.nv[a], model.nv[b]
     vma = model.vmask[a] & valid[:, None]
     vmb = model.vmask[b] & valid[:, None]
-    # Each block's edges once, then per pair: not twice per pair (primal and tangents).
+    # Each block's edges and width once, then per pair: not twice per pair (primal
+    # and tangents).
     e_all = edges(verts, model.nv)
+    widths = block_widths(e_all)
     ea, eb = (tuple(x[a] for x in e_all), tuple(x[b] for x in e_all))
     ca, cb = centroid[a], centroid[b]
     every = jnp.ones((P, V), bool)
-    s0 = _vertex_edge(model, va, nva, vma, ca, ea, eb, cb, every)
-    s1 = _vertex_edge(model, vb, nvb, vmb, cb, eb, ea, ca, every)
+    s0 = _vertex_edge(model, va, nva, vma, ca, ea, eb, cb, widths[b], every)
+    s1 = _vertex_edge(model, vb, nvb, vmb, cb, eb, ea, ca, widths[a], every)
     # A vertex of b at a contact point of a vertex of a (within that point's
     # overlap) is the same contact point, seen from both sides: each side's slot
     # takes half of it. Keeping one side's only (the lower block index's) made
@@ -326,8 +372,8 @@ def narrow_phase(model: Model, verts, centroid, pairs):
              + model.span_tol)
     same = ((_dot(dv, dv) <= reach**2) & s0["active"][:, None, :]
             & s1["active"][:, :, None])
-    s0["share"] = jnp.where(jnp.any(same, axis=1), 0.5, 1.0) * s0["share"]
-    s1["share"] = jnp.where(jnp.any(same, axis=2), 0.5, 1.0) * s1["share"]
+    s0["halved"] = jnp.any(same, axis=1)
+    s1["halved"] = jnp.any(same, axis=2)
     out = {k: jnp.stack([s0[k], s1[k]], axis=1) for k in s0}
     A = jnp.stack([jnp.broadcast_to(a[:, None], (P, V)), jnp.broadcast_to(b[:, None], (P, V))], 1)
     B = jnp.stack([jnp.broadcast_to(b[:, None], (P, V)), jnp.broadcast_to(a[:, None], (P, V))], 1)
@@ -339,20 +385,39 @@ def narrow_phase(model: Model, verts, centroid, pairs):
     joint = jnp.where(j_face >= 0, j_face, jnp.where(j_own >= 0, j_own, default))
     S = P * 2 * V
     flat = lambda x: x.reshape((S,) + x.shape[3:])  # noqa: E731
-    res = {k: flat(v) for k, v in out.items()
-           if k not in ("h_x", "h_y", "own_edge", "width_y")}
-    # A centroid on or behind the contact line (a corner reaching round the
-    # end of a face) would give h = 0 and, against a rigid wall, an infinite
-    # spring: h is at least a tenth of the block's size, its radius or, for an
-    # elongated block, its least width (a 10 m x 0.01 m sliver lying on its
-    # face has h = 5 mm, not 0.5 m: a floor on the radius would make it 100
-    # times too soft). Side s's vertex block has its width from side 1 - s.
-    width = out["width_y"][:, ::-1]
-    h_a = jnp.maximum(out["h_x"], 0.1 * jnp.minimum(model.radius[A], width))
-    h_b = jnp.maximum(out["h_y"], 0.1 * jnp.minimum(model.radius[B], out["width_y"]))
-    res.update(a=flat(A), b=flat(B), h_a=flat(h_a), h_b=flat(h_b), joint=flat(joint),
-               corner=flat(out["own_edge"] < 0))
+    res = {k: flat(v) for k, v in out.items() if k not in ("h_x", "h_y")}
+    res.update(_slot_finish(model, res | {"h_x": flat(out["h_x"]), "h_y": flat(out["h_y"])},
+                            res["halved"], flat(A), flat(B), widths))
+    res.update(a=flat(A), b=flat(B), joint=flat(joint), corner=res["own_edge"] < 0)
     return res
+
+
+def slot_geometry(model: Model, verts, centroid, slots: dict) -> dict:
+    """The differentiable fields of given slots (any subset, in any order) of :func:`narrow_phase`.
+
+    ``slots`` holds each slot's choices as :func:`narrow_phase` made them: ``a``,
+    ``b``, ``edge``, ``own_edge``, ``halved`` and ``vertex`` (the vertex's index in
+    block a). Returns ``gap``, ``point``, ``normal``, ``tangent``, ``share``,
+    ``h_a``, ``h_b``, ``far_gap`` and ``far_point`` evaluated at ``verts`` and
+    ``centroid``: the same values as :func:`narrow_phase` where the slot is
+    active (``inside`` is then implied), and their derivatives through the same
+    expressions. The sensitivities differentiate the active slots alone.
+    """
+    X, Y, k, e, own = slots["a"], slots["b"], slots["vertex"], slots["edge"], slots["own_edge"]
+    e_all = edges(verts, model.nv)
+    q0, _, length, t_all, n_all, _ = e_all
+    nv = model.nv[X]
+    prev = jnp.where(k > 0, k - 1, nv - 1)
+    nxt = jnp.where(k + 1 < nv, k + 1, 0)
+    xv = verts[X, k]
+    n, t = n_all[Y, e], t_all[Y, e]
+    g = _slot_geometry(model, xv, verts[X, nxt], verts[X, prev], centroid[X], centroid[Y],
+                       q0[Y, e], n, t, length[Y, e], length[X, k], length[X, prev], own == k,
+                       own == prev, inside=jnp.ones(k.shape, bool))
+    g.pop("s_e")
+    g.update(_slot_finish(model, g, slots["halved"], X, Y, block_widths(e_all)))
+    del g["h_x"], g["h_y"]
+    return dict(g, point=xv, normal=n, tangent=t)
 
 
 def remap_history(state: State, new_pairs: jax.Array, n_blocks: int):

@@ -262,30 +262,48 @@ def _prepare(model: Model, state: State, loads: Loads):
     free = model.free & state.alive
     mdl = dataclasses.replace(model, free=free)
     pairs, count, cell_full = broad_phase(mdl, state.verts, state.capacity, state.alive)
-    hist = remap_history(state, pairs, N)
+    hist = {k: v.reshape(-1) for k, v in remap_history(state, pairs, N).items()}
     geo = narrow_phase(mdl, state.verts, state.centroid, pairs)
+    geo, slots, st0 = _slot_fields(mdl, state, loads, geo, hist)
+    sub = _Sub(geo=geo, **slots, **_block_fields(model, state, loads, free))
+    return mdl, sub, st0, pairs, dict(pairs=count, cell_full=cell_full)
+
+
+def _slot_fields(mdl: Model, state: State, loads: Loads, geo: dict, hist: dict):
+    """The slots' part of a sub-step's data, from their contacts and carried history.
+
+    ``geo``: :func:`jaxdem.contact.narrow_phase`'s slots (or any subset of them, as
+    the sensitivities take the active ones); ``hist``: their history
+    (:func:`jaxdem.contact.remap_history`, one entry per slot); ``mdl``: the model
+    with ``free`` restricted to the live blocks. Returns (geo with round-off
+    gaps snapped, the :class:`jaxdem.springs._Sub` fields prop, Bn, Bs, fs_old,
+    fn0, failed and pw, the slots' starting states).
+    """
     prop = slot_properties(mdl, geo)
-    flat = lambda x: x.reshape(-1)  # noqa: E731
-    carried = jnp.where(flat(hist["present"]),
-                        jnp.abs(flat(hist["fn"])) + jnp.abs(flat(hist["fs"])), 0.0)
+    carried = jnp.where(hist["present"], jnp.abs(hist["fn"]) + jnp.abs(hist["fs"]), 0.0)
     geo = _snap_gaps(geo, carried)
-    same = flat(hist["present"]) & (flat(hist["edge"]) == geo["edge"]) & geo["active"]
-    failed = jnp.where(same, flat(hist["failed"]), geo["gap"] > model.touch_tol)
-    fs_old = jnp.where(same, flat(hist["fs"]), 0.0)
-    fn0 = jnp.where(same, flat(hist["fn0"]), 0.0)
+    same = hist["present"] & (hist["edge"] == geo["edge"]) & geo["active"]
+    failed = jnp.where(same, hist["failed"], geo["gap"] > mdl.touch_tol)
+    fs_old = jnp.where(same, hist["fs"], 0.0)
+    fn0 = jnp.where(same, hist["fn0"], 0.0)
     # A new slot starts closed where its faces touch: round-off in a gap of
     # zero must not leave a block resting on its support without springs.
-    st0 = jnp.where(same, flat(hist["cstate"]),
-                    jnp.where(geo["gap"] <= model.touch_tol, STICK, OPEN)).astype(jnp.int32)
-    D = model.ndof
-    Bn = b_rows(free, geo["a"], geo["b"], geo["point"], geo["point"], geo["normal"],
+    st0 = jnp.where(same, hist["cstate"],
+                    jnp.where(geo["gap"] <= mdl.touch_tol, STICK, OPEN)).astype(jnp.int32)
+    D = mdl.ndof
+    Bn = b_rows(mdl.free, geo["a"], geo["b"], geo["point"], geo["point"], geo["normal"],
                 state.centroid, D)
-    Bs = b_rows(free, geo["a"], geo["b"], geo["point"], geo["point"], geo["tangent"],
+    Bs = b_rows(mdl.free, geo["a"], geo["b"], geo["point"], geo["point"], geo["tangent"],
                 state.centroid, D)
-    if model.has_water:
+    if mdl.has_water:
         pw = water_force(mdl, geo, prop, loads.water_x, loads.water_y, loads.water_scale)
     else:
         pw = jnp.zeros_like(fs_old)
+    return geo, dict(prop=prop, Bn=Bn, Bs=Bs, fs_old=fs_old, fn0=fn0, failed=failed, pw=pw), st0
+
+
+def _block_fields(model: Model, state: State, loads: Loads, free) -> dict:
+    """The blocks' and bolts' part of a sub-step's data (``free``: the live free blocks)."""
     bolt = None
     if model.n_bolts:
         bg = bolt_geometry(model, state)
@@ -299,10 +317,8 @@ def _prepare(model: Model, state: State, loads: Loads):
                     ra=bg["point_a"] - state.centroid[bg["a"]],
                     rb=bg["point_b"] - state.centroid[bg["b"]], rest=rest,
                     free_a=free[bg["a"]], free_b=free[bg["b"]])
-    sub = _Sub(geo=geo, prop=prop, Bn=Bn, Bs=Bs, fs_old=fs_old, fn0=fn0, failed=failed, pw=pw,
-               bolt=bolt, load=jnp.where(free[:, None], loads.force, 0.0), free=free,
-               stress=state.stress, Kc=_cell_stiffness(model, free) if D == 6 else None)
-    return mdl, sub, st0, pairs, dict(pairs=count, cell_full=cell_full)
+    return dict(bolt=bolt, load=jnp.where(free[:, None], loads.force, 0.0), free=free,
+                stress=state.stress, Kc=_cell_stiffness(model, free) if model.ndof == 6 else None)
 
 
 def _commit(model: Model, state: State, sub: _Sub, pairs, du, ev):

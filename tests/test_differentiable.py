@@ -88,6 +88,53 @@ def test_tunnel_cohesion_derivative_is_small_and_matches_central_differences(tun
     assert np.max(np.abs(J[:, i] - fd)) <= 2e-3 * scale
 
 
+
+def test_active_slots_alone_give_the_whole_detections_derivatives(monkeypatch):
+    """The sensitivities differentiate only the active slots, gathered into S / 4 places
+    (jaxdem.sensitivities._sub_tangents); a sub-step with more active slots differentiates
+    the whole detection. Both give the same derivatives of a sub-step's new state and
+    contact snapshot: an inactive slot carries no force whatever its geometry. Checked on
+    the last increment of the slipping tunnel (water, bolts, slip, open contacts)."""
+    import jaxdem.solver as solver_mod
+    from jaxdem.sensitivities import ACTIVE_SHARE, _substep_tangent
+
+    calls = []
+    run_increment = solver_mod.run_increment
+
+    def record(model, state, loads, tangents=None, quick=False):
+        out = run_increment(model, state, loads, tangents, quick)
+        if tangents is not None:
+            calls.append((out[0], state, loads, tangents))
+        return out
+
+    monkeypatch.setattr(solver_mod, "run_increment", record)
+    problem = Problem(parse_scene(_slipping_tunnel()), ["joints.set1.kn", "in_situ.k0"])
+    problem.evaluate(problem.theta0, jacobian=True)
+    model, state, loads, tangents = calls[-1]
+    args = (model, state, loads, tangents["model"], tangents["state"], tangents["loads"])
+    S = state.fs.size
+
+    def tangents_and_active(share):
+        forward, derivatives = _substep_tangent(*args, active_share=share)
+        return derivatives, forward[5]["active"]  # the sub-step's contact snapshot
+
+    (dstate, dsnap), active = jax.jit(lambda: tangents_and_active(ACTIVE_SHARE))()
+    assert 0 < int(jnp.sum(active)) <= S // ACTIVE_SHARE  # the gathered path is the one taken
+    (dstate_w, dsnap_w), _ = jax.jit(lambda: tangents_and_active(S + 1))()  # whole
+
+    def close(x, y):
+        np.testing.assert_allclose(x, y, rtol=0, atol=1e-12 * float(jnp.max(jnp.abs(y))))
+
+    for k in dstate:
+        close(dstate[k], dstate_w[k])
+    assert float(jnp.max(jnp.abs(dstate["centroid"]))) > 0
+    # The snapshot's forces everywhere; its points and normals where a slot is active
+    # (elsewhere they carry no force, and the release masks them out).
+    for k in dsnap:
+        where = slice(None) if k in ("fn", "fs", "pw") else active
+        close(dsnap[k][:, where], dsnap_w[k][:, where])
+
+
 def test_uniform_in_situ_stress_derivatives_match_central_differences():
     d = jointed_tunnel(water=False, bolts=False, top="roller")
     d["in_situ"] = {"mode": "uniform", "sigma_xx": 600.0, "sigma_yy": 800.0, "sigma_xy": 50.0}
