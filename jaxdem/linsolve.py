@@ -118,47 +118,7 @@ def _solve_dense(model: Model, sub: _Sub, terms, R):
     a, b, L, Rt, k = terms
     diag = jnp.where(jnp.repeat(sub.free, model.ndof), model.pseudo_mass.reshape(-1), 1.0)
     K = _assemble_dense(model, sub, a, b, L, Rt, k, diag)
-    return lu_solve(lu_factor(K), R.reshape(-1, 1)).reshape(R.shape)
-
-
-def lu_factor(K):
-    """LU of K (n, n) with partial pivoting: (lu, perm), with K[perm] = L U.
-
-    ``jax.lax.linalg.lu``'s own permutation (and so ``jnp.linalg.solve`` and
-    ``jax.scipy.linalg.lu_solve``, which rebuilds it at every solve) comes from
-    a loop of n row swaps, one small op each: on the CPU that loop cost twice
-    the factorisation itself (0.8 ms against 0.4 ms at n = 240, one Newton
-    iteration of the benchmark tunnel). :func:`_permutation` builds it in
-    log2(n) vectorised steps instead.
-    """
-    lu, pivots, _ = jax.lax.linalg.lu(K)
-    return lu, _permutation(pivots)
-
-
-def lu_solve(factors, B):
-    """K^-1 B (n, m) from :func:`lu_factor`'s (lu, perm): two triangular solves."""
-    lu, perm = factors
-    tri = jax.lax.linalg.triangular_solve
-    x = tri(lu, B[perm], left_side=True, lower=True, unit_diagonal=True)
-    return tri(lu, x, left_side=True, lower=False)
-
-
-def _permutation(pivots):
-    """The row permutation of LAPACK's pivots (row i swapped with pivots[i], i = 0, 1, ...).
-
-    As ``jax.lax.linalg.lu_pivots_to_permutation`` gives it, perm = t_0 o t_1 o
-    ... o t_(n-1), t_i the transposition (i, pivots[i]): the n transpositions
-    as rows of an (n, n) table, composed pairwise (adjacent rows, order kept)
-    until one is left.
-    """
-    n = pivots.shape[-1]
-    idx = jnp.arange(n, dtype=pivots.dtype)
-    t = jnp.broadcast_to(idx, (n, n)).at[idx, idx].set(pivots).at[idx, pivots].set(idx)
-    while t.shape[0] > 1:
-        if t.shape[0] % 2:
-            t = jnp.concatenate([t, idx[None]])
-        t = jnp.take_along_axis(t[0::2], t[1::2], axis=1)  # (f o g)[j] = f[g[j]]
-    return t[0]
+    return jnp.linalg.solve(K, R.reshape(-1)).reshape(R.shape)
 
 
 def _host_matrix(rows, cols, blocks, n: int):

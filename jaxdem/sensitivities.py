@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdem.linsolve import _assemble_dense, _blocks, _host_matrix, lu_factor, lu_solve
+from jaxdem.linsolve import _assemble_dense, _blocks, _host_matrix
 from jaxdem.loads import _preload, _release
 from jaxdem.springs import _evaluate, _stiffness_terms, _Sub, _with_slip_coupling
 from jaxdem.state import Loads, Model, State
@@ -110,10 +110,10 @@ def _tangent_solve(model: Model, sub: _Sub, terms, rhs):
     B = rhs.reshape(p, N * D).T
     if model.linear_solver == "dense":
         K = _assemble_dense(model, sub, a, b, L, Rt, k, diag)
-        lu = lu_factor(K + jnp.diag(pm))
-        x = lu_solve(lu, B)
+        lu = jax.scipy.linalg.lu_factor(K + jnp.diag(pm))
+        x = jax.scipy.linalg.lu_solve(lu, B)
         for _ in range(TANGENT_REFINEMENTS):
-            x = x + lu_solve(lu, B - K @ x)
+            x = x + jax.scipy.linalg.lu_solve(lu, B - K @ x)
         x = jnp.where(jnp.all(jnp.isfinite(x)), x, jnp.nan)
     else:
         rows, cols, blocks = _blocks(model, sub, a, b, L, Rt, k, diag)
