@@ -22,8 +22,13 @@ inside the face's span (a corner at the end of a face, where faces meet end
 to end at a node, bears on nothing): a corner bears on a short
 length of the face, and the choice only sets the corner spring's stiffness,
 never the strength check, which is per point. Where a vertex of b sits at the
-contact point of a vertex of a (within that point's overlap), only a's slot is
-kept, so no point is counted twice.
+contact point of a vertex of a (within that point's overlap), the two slots are
+one point seen from both sides, and each takes half of it (``halved``).
+
+The choices (which face, which own face, which vertex is near) are made on
+values; the geometry that follows from them (:func:`_slot_geometry`) is
+differentiable, and :func:`slot_geometry` evaluates it for any subset of the
+slots (the sensitivities differentiate the active ones alone).
 """
 
 from __future__ import annotations

@@ -3,6 +3,8 @@
 Owns the lists of smooth fields (:data:`SMOOTH_MODEL`, :data:`STATE_FLOATS`,
 :data:`LOAD_FLOATS`, :data:`SNAPSHOT_FLOATS`), :func:`_substep_tangent` (each
 converged sub-step differentiated implicitly with its contact states held),
+:func:`_sub_tangents` (the derivatives of a sub-step's data, from its active
+slots alone),
 the solve with the exact tangent (:func:`_tangent_solve`), and the
 derivatives of :func:`jaxdem.loads._preload` and :func:`jaxdem.loads._release`.
 

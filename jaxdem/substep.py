@@ -1,7 +1,8 @@
 """One geometry sub-step: detect contacts, Newton iteration at fixed geometry, commit.
 
 Owns :func:`_prepare` (contacts and their history at the current geometry:
-the :class:`jaxdem.springs._Sub`), :func:`_newton` (the iteration on du),
+the :class:`jaxdem.springs._Sub`, from its slots' part :func:`_slot_fields` and
+its blocks' part :func:`_block_fields`), :func:`_newton` (the iteration on du),
 :func:`_commit` (move the blocks, commit the springs, global balance),
 :func:`_admissibility` and :func:`_substep`, which chains them. The increment
 (:mod:`jaxdem.increment`) repeats sub-steps until one converges.
