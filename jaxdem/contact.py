@@ -390,9 +390,9 @@ def narrow_phase(model: Model, verts, centroid, pairs):
     joint = jnp.where(j_face >= 0, j_face, jnp.where(j_own >= 0, j_own, default))
     S = P * 2 * V
     flat = lambda x: x.reshape((S,) + x.shape[3:])  # noqa: E731
-    res = {k: flat(v) for k, v in out.items() if k not in ("h_x", "h_y")}
-    res.update(_slot_finish(model, res | {"h_x": flat(out["h_x"]), "h_y": flat(out["h_y"])},
-                            res["halved"], flat(A), flat(B), widths))
+    res = {k: flat(v) for k, v in out.items()}
+    res.update(_slot_finish(model, res, res["halved"], flat(A), flat(B), widths))
+    del res["h_x"], res["h_y"]
     res.update(a=flat(A), b=flat(B), joint=flat(joint), corner=res["own_edge"] < 0)
     return res
 

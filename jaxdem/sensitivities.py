@@ -155,9 +155,10 @@ def _sub_tangents(model: Model, state: State, loads: Loads, sub: _Sub, pairs, pr
     geo_keys = ("a", "b", "edge", "own_edge", "halved", "joint", "active", "corner")
     slot_fields = ("geo", "prop", "Bn", "Bs", "fs_old", "fn0", "failed", "pw")
 
-    def smooth_leaves(sb):
-        return [(p[0].name, x) for p, x in jax.tree_util.tree_leaves_with_path(sb)
-                if jnp.issubdtype(x.dtype, jnp.inexact)]
+    def rebuilt(mf, sf, lf):
+        """The model, state and loads with these smooth fields."""
+        return (dataclasses.replace(model, **mf), dataclasses.replace(state, **sf),
+                dataclasses.replace(loads, **lf))
 
     def compact():
         sid = jnp.nonzero(sub.geo["active"], size=C, fill_value=S)[0]
@@ -166,53 +167,49 @@ def _sub_tangents(model: Model, state: State, loads: Loads, sub: _Sub, pairs, pr
         chosen["vertex"] = (at % V).astype(jnp.int32)
 
         def part(mf, sf, lf):
-            m = dataclasses.replace(model, **mf)
-            s = dataclasses.replace(state, **sf)
-            ld = dataclasses.replace(loads, **lf)
+            m, s, ld = rebuilt(mf, sf, lf)
             free = m.free & s.alive
             mdl = dataclasses.replace(m, free=free)
             hist = {k: v.reshape(-1)[at] for k, v in remap_history(s, pairs, N).items()}
             geo = {k: chosen[k] for k in geo_keys}
             geo.update(slot_geometry(mdl, s.verts, s.centroid, chosen))
             geo, slots, _ = _slot_fields(mdl, s, ld, geo, hist)
-            return [x for _, x in smooth_leaves(_Sub(geo=geo, **slots,
-                                                     **_block_fields(m, s, ld, free)))]
+            return floats_of(_Sub(geo=geo, **slots, **_block_fields(m, s, ld, free)))
 
         _, lin = jax.linearize(part, *primals)
         d = jax.vmap(lin)(*tangents)
-        names = [name for name, _ in smooth_leaves(sub)]
         out = []
-        for name, x, full in zip(names, d, floats_of(sub), strict=True):
+        for (name, full), x in zip(_named_floats(sub), d, strict=True):
             if name in slot_fields:
                 x = jnp.zeros(x.shape[:1] + full.shape, x.dtype).at[:, sid].set(x, mode="drop")
             out.append(x)
         return out
 
     def whole():
-        def prepare(mf, sf, lf):
-            m = dataclasses.replace(model, **mf)
-            s = dataclasses.replace(state, **sf)
-            ld = dataclasses.replace(loads, **lf)
-            return floats_of(_prepare(m, s, ld)[1])
-
-        _, lin = jax.linearize(prepare, *primals)
+        _, lin = jax.linearize(lambda *f: floats_of(_prepare(*rebuilt(*f))[1]), *primals)
         return jax.vmap(lin)(*tangents)
 
     return jax.lax.cond(jnp.sum(sub.geo["active"]) <= C, compact, whole)
 
 
+def _named_floats(sub: _Sub) -> list:
+    """(field, leaf) for the float leaves of a sub-step's data, in tree order."""
+    return [(path[0].name, x) for path, x in jax.tree_util.tree_leaves_with_path(sub)
+            if jnp.issubdtype(x.dtype, jnp.inexact)]
+
+
 def floats_of(sub: _Sub) -> list:
     """The float leaves of a sub-step's data, in tree order (the smooth ones)."""
-    return [x for x in jax.tree.leaves(sub) if jnp.issubdtype(x.dtype, jnp.inexact)]
+    return [x for _, x in _named_floats(sub)]
 
 
 def _substep_tangent(model: Model, state: State, loads: Loads, dmodel, dstate, dloads,
-                     active_share: int | None = None):
+                     active_share: int = ACTIVE_SHARE):
     """:func:`jaxdem.substep._substep` and the derivatives of its new state and snapshot.
 
     Returns (the outputs of :func:`jaxdem.substep._substep`, (dstate, dsnapshot)); see
     :func:`jaxdem.increment.increment_tangent`. ``active_share``: see
-    :func:`_sub_tangents` (default :data:`ACTIVE_SHARE`).
+    :func:`_sub_tangents`.
     """
     mf0, sf0, lf0 = (_fields(model, SMOOTH_MODEL), _fields(state, STATE_FLOATS),
                      _fields(loads, LOAD_FLOATS))
@@ -234,7 +231,7 @@ def _substep_tangent(model: Model, state: State, loads: Loads, dmodel, dstate, d
         return tree.unflatten([next(it) if f else x for x, f in zip(leaves, smooth, strict=True)])
 
     dsub = _sub_tangents(model, state, loads, sub, pairs, (mf0, sf0, lf0), (dmodel, dstate, dloads),
-                         ACTIVE_SHARE if active_share is None else active_share)
+                         active_share)
 
     # Equilibrium and commit at fixed geometry, in the held states.
     def settle(mf, fl, sf, x):
