@@ -86,7 +86,7 @@ from scenes import jointed_tunnel  # noqa: E402
 import jaxdem  # noqa: E402
 from inverse import Observation, back_analyse  # noqa: E402
 from jaxdem.differentiable import Problem  # noqa: E402
-from jaxdem.scene import parse_scene  # noqa: E402
+from jaxdem.scene import parse_scene
 
 STAGES = ("heading", "bench")
 SECTIONS = ("span", "height", "bench span")
@@ -274,6 +274,7 @@ METHODS = ("Gauss-Newton", "L-BFGS", "LM, FD", "Nelder-Mead", "DE")
 
 
 def main(argv=None):
+    jaxdem.config.configure()  # float64, one OpenBLAS thread, the program cache
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--params", type=int, nargs="+", default=[2, 4, 6])
     parser.add_argument("--starts", type=int, default=5)

@@ -32,7 +32,7 @@ import numpy as np  # noqa: E402
 import test_bolts as tb  # noqa: E402
 
 import jaxdem  # noqa: E402
-from jaxdem.scene import parse_scene  # noqa: E402
+from jaxdem.scene import parse_scene
 
 
 def cases():
@@ -54,6 +54,7 @@ def cases():
 
 
 def main() -> None:
+    jaxdem.config.configure()  # float64, one OpenBLAS thread, the program cache
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=5)
     args = ap.parse_args()

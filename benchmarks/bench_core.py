@@ -78,13 +78,14 @@ def closed_form_settlement(rows: int, h=1.0, E=1e7, nu=0.25, kn0=1e6, gamma=25.0
 def run_one(n: int, dtype: str, repeats: int) -> dict:
     import jax
 
-    import jaxdem  # noqa: F401  (enables x64)
-    from jaxdem import model as model_mod
+    import jaxdem
+    jaxdem.config.configure()  # float64, one OpenBLAS thread, the program cache
     from jaxdem import solver
-    from jaxdem.contact import broad_phase, narrow_phase
-    from jaxdem.loads import make_loads
+    from jaxdem.core import model as model_mod
+    from jaxdem.core._contact import broad_phase, narrow_phase
+    from jaxdem.core.loads import make_loads
+    from jaxdem.core.status import Status, global_imbalance
     from jaxdem.scene import parse_scene
-    from jaxdem.status import Status, _imbalance
 
     d = assembly(n, dtype)
     rows = d.pop("_rows")
@@ -119,7 +120,7 @@ def run_one(n: int, dtype: str, repeats: int) -> dict:
     jax.block_until_ready(new.verts)
     if new.capacity != state.capacity:
         state = jax.tree.map(lambda x: x, state)
-        from jaxdem.state import grow_capacity
+        from jaxdem.core.state import grow_capacity
         state = grow_capacity(state, new.capacity)
     times = []
     for _ in range(max(1, repeats // 2)):
@@ -128,12 +129,12 @@ def run_one(n: int, dtype: str, repeats: int) -> dict:
         jax.block_until_ready(new.verts)
         times.append(time.perf_counter() - t0 - dt)
     solve_s = statistics.median(times)
-    status = Status(int(info["status"])).label
+    status = Status.of(info["status"]).label
     from jaxdem.results import monitor_values
 
     uy = -monitor_values(layout, new)["top"]["displacement"][1]
     ref = closed_form_settlement(rows)
-    imbalance = _imbalance(info["balance"])
+    imbalance = global_imbalance(info["balance"])
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return dict(blocks=layout.n_rock, dtype=dtype, solver=model.linear_solver,
                 pairs=n_pairs, build_s=build_s, detect_compile_s=detect_compile_s,

@@ -50,10 +50,11 @@ def main() -> None:
     from bench_scaling import scene as standing_tunnel
 
     import jaxdem
-    from jaxdem import compile_cache
-    from jaxdem import model as model_mod
-    from jaxdem.increment import increment
-    from jaxdem.loads import make_loads
+    jaxdem.config.configure()  # float64, one OpenBLAS thread, the program cache
+    from jaxdem.core import compile_cache
+    from jaxdem.core import model as model_mod
+    from jaxdem.core.increment import increment
+    from jaxdem.core.loads import make_loads
     from jaxdem.scene import parse_scene
 
     jaxdem.config.compilation_cache(False)  # measure compilation, not the cache

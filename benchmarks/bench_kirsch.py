@@ -59,6 +59,7 @@ def main() -> None:
     ap.add_argument("--k0", type=float, nargs="+", default=[1.0, 0.5])
     args = ap.parse_args()
     import jaxdem
+    jaxdem.config.configure()  # float64, one OpenBLAS thread, the program cache
     from jaxdem.scene import parse_scene
 
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores")

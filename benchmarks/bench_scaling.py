@@ -55,6 +55,7 @@ def run_one(spacing: float, solver: str, repeats: int, out: str) -> dict:
     import jax
 
     import jaxdem
+    jaxdem.config.configure()  # float64, one OpenBLAS thread, the program cache
     from jaxdem.scene import parse_scene
 
     sc = parse_scene(scene(spacing, solver))

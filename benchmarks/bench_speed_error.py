@@ -18,7 +18,7 @@ Three problems:
   opening in the last load steps and Newton converges only linearly there, so tolerance
   and ``max_iterations`` matter; same kind of reference.
 
-Around the base settings (scene_schema.py's defaults: load_steps 5, tolerance 1e-9,
+Around the base settings (jaxdem/scene/_schema.py's defaults: load_steps 5, tolerance 1e-9,
 max_iterations 60, float64; Kirsch at h = 0.5 m) one factor varies at a time, plus a few
 combinations. Configurations that share a compiled program (same mesh and dtype) run
 in one fresh process, one group at a time. Times: ``solve s`` is the median of the
@@ -62,7 +62,7 @@ sys.path[:0] = [str(HERE), str(ROOT)]
 import bench_kirsch  # noqa: E402
 import bench_tunnel  # noqa: E402
 
-# scene_schema.py's SolverSettings defaults, repeated here so that the table can say whether
+# jaxdem/scene/_schema.py's SolverSettings defaults, repeated here so that the table can say whether
 # they are on the front; checked against jaxdem at run time.
 DEFAULTS = dict(load_steps=5, tolerance=1e-9, max_iterations=60, dtype="float64")
 KIRSCH_H = 0.5
@@ -160,6 +160,7 @@ def label(c: dict) -> str:
 
 def _solve_once(sc) -> tuple[dict, object]:
     import jaxdem
+    jaxdem.config.configure()  # float64, one OpenBLAS thread, the program cache
 
     t0 = time.perf_counter()
     r = jaxdem.solve(sc)

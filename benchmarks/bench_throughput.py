@@ -53,7 +53,8 @@ def main() -> None:
     from bench_scaling import scene as standing_tunnel
 
     import jaxdem
-    from jaxdem import model as model_mod
+    jaxdem.config.configure()  # float64, one OpenBLAS thread, the program cache
+    from jaxdem.core import model as model_mod
     from jaxdem.scene import parse_scene
 
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, jax {jax.__version__} "

@@ -12,7 +12,7 @@ a first run filled; "similar": the cache filled by another scene of the same
 size classes (the incline with a second block on the first, an 11 x 9 and a
 21 x 19 grid): a new scene of a similar size. Wall time is the median over ``--repeats`` runs. The
 phases come from the command's own marks (``$JAXDEM_PHASES``, see
-jaxdem/cli.py) and ``result.json``'s timing:
+jaxdem/cli/__init__.py) and ``result.json``'s timing:
 
 - start: Python and the command line up to the command (the interpreter,
   argparse), measured from the launch of the process;

@@ -48,6 +48,7 @@ def run_one(spacing: float) -> dict:
     import jax
 
     import jaxdem
+    jaxdem.config.configure()  # float64, one OpenBLAS thread, the program cache
     from jaxdem.scene import parse_scene
 
     t0 = time.perf_counter()

@@ -46,7 +46,7 @@ from scenes import jointed_tunnel  # noqa: E402
 import jaxdem  # noqa: E402
 from inverse import Observation, back_analyse  # noqa: E402
 from jaxdem.differentiable import Problem  # noqa: E402
-from jaxdem.scene import parse_scene  # noqa: E402
+from jaxdem.scene import parse_scene
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 FACTOR = 100.0  # the default bounds: theta0 / 100 to theta0 * 100
@@ -160,6 +160,7 @@ def coverage(replicates, seed):
 
 
 def main(argv=None):
+    jaxdem.config.configure()  # float64, one OpenBLAS thread, the program cache
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", nargs="*", default=list(SCENES), choices=list(SCENES))
     parser.add_argument("--starts", type=int, default=20)

@@ -49,6 +49,7 @@ SECTIONS = ("section 1-1", "section 2-2", "section 3-3", "section 4-4")
 
 
 def main(argv=None):
+    jaxdem.config.configure()  # float64, one OpenBLAS thread, the program cache
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="out/back_analysis_example2",
                         help="output folder (default out/back_analysis_example2; the shipped "

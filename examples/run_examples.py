@@ -98,6 +98,7 @@ def stress_near_a(row: dict) -> dict:
 
 
 def main(argv=None) -> int:
+    jaxdem.config.configure()  # float64, one OpenBLAS thread, the program cache
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", action="append", default=[],
                     help="scene name (file stem); repeat for several")

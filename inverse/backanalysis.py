@@ -52,21 +52,54 @@ from typing import Any
 
 import numpy as np
 
-from inverse.fit import (ADAM_LEARNING_RATE, CONVERGED, DEFAULT_TOLERANCE, LM_MAX_STEP,
-                         NO_EQUILIBRIUM_AT_START, OPTIMIZERS, RESTARTS, Objective, Run,
-                         Transform, check_bounds, check_fit, finite_entry, logit,
-                         make_transform, restart_points, restore, run_adam, run_gauss_newton,
-                         run_lbfgs, scales, start_z)
-from inverse.observations import (Observation, as_observations, checked_observations,
-                                  observed_model, read_observations, resolve_stages)
+from inverse.fit import (
+    ADAM_LEARNING_RATE,
+    CONVERGED,
+    DEFAULT_TOLERANCE,
+    LM_MAX_STEP,
+    NO_EQUILIBRIUM_AT_START,
+    OPTIMIZERS,
+    RESTARTS,
+    Objective,
+    Run,
+    Transform,
+    check_bounds,
+    check_fit,
+    finite_entry,
+    logit,
+    make_transform,
+    restart_points,
+    restore,
+    run_adam,
+    run_gauss_newton,
+    run_lbfgs,
+    scales,
+    start_z,
+)
+from inverse.observations import (
+    Observation,
+    as_observations,
+    checked_observations,
+    observed_model,
+    read_observations,
+    resolve_stages,
+)
 from inverse.report import BackAnalysis
-from inverse.statistics import (REJECT_QUANTILE, bound_warnings, fit_warnings,
-                                gauss_newton_statistics, misfit_limit, precision_warnings)
+from inverse.statistics import (
+    REJECT_QUANTILE,
+    bound_warnings,
+    fit_warnings,
+    gauss_newton_statistics,
+    misfit_limit,
+    precision_warnings,
+)
+from jaxdem.config import float64
 from jaxdem.scene import Scene
 
 __all__ = ["BackAnalysis", "Observation", "back_analyse", "read_observations"]
 
 
+@float64
 def back_analyse(
     scene: Scene | None,
     observed: Mapping[str, Any] | Sequence[Observation],

@@ -451,8 +451,8 @@ def run_gauss_newton(objective: Objective, z0: np.ndarray, max_iterations: int,
     Each trial point costs one solve with sensitivities; a trial that does not lower
     the misfit (or has no equilibrium, or no derivative) is refused and the damping
     raised. After ``LM_BLOCKED`` trials without equilibrium, or before giving up, it
-    tries steps of one parameter at a time. Not optax: the least-squares structure is what makes it converge in a
-    handful of solves.
+    tries steps of one parameter at a time. Not optax: the least-squares structure is what
+    makes it converge in a handful of solves.
     """
     tr = objective.transform
     a, b = tr._ends

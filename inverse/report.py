@@ -15,6 +15,7 @@ import numpy as np
 
 from inverse.observations import Observation
 
+
 @dataclass
 class BackAnalysis:
     """The outcome of :func:`back_analyse`. Parameters are in file units (kn, ks in

@@ -9,24 +9,31 @@ files. Compression positive.
     scene = jaxdem.load_scene("scene.toml")
     result = jaxdem.solve(scene)
     result.to_dict()
+
+Importing jaxdem changes nothing in the caller's process: no JAX flag, no environment
+variable, no cache. The solver runs in float64 around its own entry points;
+:func:`jaxdem.config.configure` makes the process-wide settings (float64 everywhere, one
+OpenBLAS thread, the persistent compilation cache) for a program that wants them, as the
+command line does.
+
+The package, by concept (README, "Layout"): :mod:`jaxdem.scene` (scene files),
+:mod:`jaxdem.rockmass` (generated blocks), :mod:`jaxdem.core` (the device side),
+:mod:`jaxdem.results`, :mod:`jaxdem.solver`, :mod:`jaxdem.differentiable`,
+:mod:`jaxdem.batch`, :mod:`jaxdem.sweep`, :mod:`jaxdem.fos`, :mod:`jaxdem.vtk`,
+:mod:`jaxdem.plots`, :mod:`jaxdem.cli`, :mod:`jaxdem.config`, :mod:`jaxdem.geometry`.
 """
 
 from jaxdem import config
-
-# float64 by default, one OpenBLAS thread, the persistent compilation cache:
-# see jaxdem.config.
-config.configure()
-
-from jaxdem.batch import BatchResult, solve_batch  # noqa: E402
-from jaxdem.differentiable import differentiable  # noqa: E402
-from jaxdem.fos import FactorOfSafety, factor_of_safety  # noqa: E402
-from jaxdem.results import Result  # noqa: E402
-from jaxdem.scene import Scene, SceneError, load_scene  # noqa: E402
-from jaxdem.solver import solve  # noqa: E402
-from jaxdem.status import Status  # noqa: E402
-from jaxdem.sweep import SweepResult, sweep  # noqa: E402
+from jaxdem.batch import BatchResult, solve_batch
+from jaxdem.core.status import Status
+from jaxdem.differentiable import differentiable
+from jaxdem.fos import FactorOfSafety, factor_of_safety
+from jaxdem.results import Result
+from jaxdem.scene import Scene, SceneError, load_scene
+from jaxdem.solver import solve
+from jaxdem.sweep import SweepResult, sweep
 
 __all__ = ["BatchResult", "FactorOfSafety", "Result", "Scene", "SceneError", "Status",
-           "SweepResult", "differentiable", "factor_of_safety", "load_scene", "solve",
+           "SweepResult", "config", "differentiable", "factor_of_safety", "load_scene", "solve",
            "solve_batch", "sweep"]
 __version__ = "0.1.0"

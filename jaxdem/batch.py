@@ -28,15 +28,16 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 
-from jaxdem import model as model_mod
-from jaxdem.compile_cache import QUICK_WORK, _compiled, on_disk
-from jaxdem.differentiable import _monitor_values, _ParameterMap
-from jaxdem.increment import _increment
-from jaxdem.loads import _preload, _release
+from jaxdem.config import float64
+from jaxdem.core import model as model_mod
+from jaxdem.core.compile_cache import QUICK_WORK, compiled_program, on_disk
+from jaxdem.core.increment import substeps_to_equilibrium
+from jaxdem.core.loads import in_situ_preload, release_forces
+from jaxdem.core.state import Loads, grow_capacity
+from jaxdem.core.status import Status
+from jaxdem.differentiable import ParameterMap, monitor_readings
 from jaxdem.scene import SceneError, apply_overrides
 from jaxdem.solver import Data, increment_count, run, scene_data
-from jaxdem.state import Loads, grow_capacity
-from jaxdem.status import Status
 
 SAMPLE_AXIS = "samples"
 
@@ -51,7 +52,7 @@ class BatchResult:
       monitors: monitor name -> (S,) convergence of a section or (S, 2)
         displacement [ux, uy] of a point (m), at the end of the last stage;
         NaN where the sample found no equilibrium.
-      status: (S,) :class:`jaxdem.status.Status` labels of each sample's last increment.
+      status: (S,) :class:`jaxdem.core.status.Status` labels of each sample's last increment.
       stable: (S,) bool, no mechanism was found.
       converged: (S,) bool, every increment reached equilibrium.
       iterations: (S,) Newton iterations of each sample, summed over increments.
@@ -69,6 +70,7 @@ class BatchResult:
     timing: dict
 
 
+@float64
 def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
                 progress=None) -> BatchResult:
     """Solve ``scene`` at each row of ``theta`` (values of ``params``), batched.
@@ -113,7 +115,7 @@ def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
     t0 = time.perf_counter()
     model, state, layout, data0, values, read = _prepared(scene, tuple(params))
     S = theta.shape[0]
-    # A small batch runs briefly: its program compiled quick (jaxdem.compile_cache).
+    # A small batch runs briefly: its program compiled quick (jaxdem.core.compile_cache).
     quick = model.n_blocks * increment_count(scene, layout) * S <= QUICK_WORK
     per_device = _chunk_size(model, state, -(-S // n_dev), devices)
     size = chunk if chunk is not None else per_device * n_dev
@@ -149,12 +151,12 @@ def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
             out_mon.setdefault(name, np.full((S,) + v.shape[1:], np.nan))[rows] = v
         if progress is not None:
             progress(int(rows[-1]) + 1, S)
-    ok = status == Status.CONVERGED
+    ok = status == Status.CONVERGED.code
     for v in out_mon.values():
         v[~ok] = np.nan
     return BatchResult(
         params=params, theta=theta, monitors=out_mon,
-        status=[Status(int(s)).label for s in status], stable=status != Status.MECHANISM,
+        status=[Status.of(s).label for s in status], stable=status != Status.MECHANISM.code,
         converged=ok, iterations=iterations,
         timing=dict(build_s=build_s, compile_s=compile_s, solve_s=solve_s, chunk=size,
                     devices=placed))
@@ -178,9 +180,9 @@ def _prepared(scene, params: tuple):
     model = dataclasses.replace(model, linear_solver=model_mod.linear_solver_for(
         scene.solver.linear_solver, unknowns, batch=True))
     data0 = scene_data(scene, layout)
-    pmap = _ParameterMap(scene, model, layout, data0, list(params))
+    pmap = ParameterMap(scene, model, layout, data0, list(params))
     values = jax.jit(jax.vmap(pmap._values))
-    read = jax.jit(jax.vmap(functools.partial(_monitor_values, layout)))
+    read = jax.jit(jax.vmap(functools.partial(monitor_readings, layout)))
     _PREPARED[key] = (scene, model, state, layout, data0, values, read)
     while len(_PREPARED) > 4:
         _PREPARED.popitem(last=False)
@@ -259,7 +261,8 @@ needs it."""
 
 
 def _member_increment(model, fields, state, loads, skip):
-    return _increment(dataclasses.replace(model, lanes=LANES, **fields), state, loads, skip=skip)
+    return substeps_to_equilibrium(dataclasses.replace(model, lanes=LANES, **fields), state, loads,
+                                   skip=skip)
 
 
 def _increment_lanes(model, fields, state, loads, skip):
@@ -287,14 +290,14 @@ def _increment_fn(devices: tuple):
 @functools.partial(jax.jit, static_argnames=("mode",))
 def _preload_lanes(model, fields, state, loads, args, mode):
     def one(fl, st, ld, a):
-        return _preload(dataclasses.replace(model, **fl), st, ld, *a, mode=mode)
+        return in_situ_preload(dataclasses.replace(model, **fl), st, ld, *a, mode=mode)
 
     return jax.vmap(one)(fields, state, loads, args)
 
 
 @functools.partial(jax.jit, static_argnames=("ndof",))
 def _release_lanes(centroid, snap, removed, ndof):
-    return jax.vmap(lambda c, s: _release(c, s, removed, ndof))(centroid, snap)
+    return jax.vmap(lambda c, s: release_forces(c, s, removed, ndof))(centroid, snap)
 
 
 def _grow(state, capacity: int):
@@ -314,7 +317,7 @@ class _BatchDriver:
         self.C, self.devices, self.quick = C, tuple(devices), quick
         self.model, self.fields, self.layout, self.data = model, fields, layout, data
         self.state = jax.tree.map(lambda x: jnp.broadcast_to(x, (C,) + x.shape), state)
-        self.status_of = np.full(C, int(Status.CONVERGED))
+        self.status_of = np.full(C, Status.CONVERGED.code)
         self.live = np.ones(C, bool)
         self.iterations = np.zeros(C, int)
         self.ref = self.dref = self.dstate = self.info = None
@@ -333,7 +336,7 @@ class _BatchDriver:
     def status(self) -> Status:
         if self.live.any():
             return Status.CONVERGED
-        return Status(int(self.status_of.max()))
+        return Status.of(self.status_of.max())
 
     def loads(self, force, water_y=None, water_scale=1.0):
         wy = self.water_y if water_y is None else water_y
@@ -352,13 +355,13 @@ class _BatchDriver:
         while True:
             skip = jnp.asarray(~self.live)
             t1 = time.perf_counter()
-            fn, dt = _compiled(fn_jit, self.model, self.fields, self.state, loads, skip,
+            fn, dt = compiled_program(fn_jit, self.model, self.fields, self.state, loads, skip,
                                quick=self.quick)
             new, info = fn(self.model, self.fields, self.state, loads, skip)
             status = np.asarray(info["status"])
             self.compile_s += dt
             self.solve_s += time.perf_counter() - t1 - dt
-            over = (status == Status.CAPACITY_OVERFLOW) & self.live
+            over = (status == Status.CAPACITY_OVERFLOW.code) & self.live
             if not over.any():
                 break
             if np.asarray(info["cell_full"])[over].any():
@@ -371,7 +374,7 @@ class _BatchDriver:
         self.state, self.info = new, info
         self.iterations += np.where(self.live, np.asarray(info["iterations"]), 0)
         self.status_of = np.where(self.live, status, self.status_of)
-        self.live &= status == Status.CONVERGED
+        self.live &= status == Status.CONVERGED.code
         self.records.append(dict(stage=stage, step=k, load_factor=k / n,
                                  live=int(self.live.sum())))
         return bool(self.live.any())

@@ -9,9 +9,9 @@ How it works:
   on the host, reached from JAX through ``jax.pure_callback``.
 - Derivatives are forward-mode sensitivities carried alongside that solve:
   each parameter seeds the derivatives of the model and loads it changes
-  (:class:`_ParameterMap`), and every geometry sub-step that ends in
+  (:class:`ParameterMap`), and every geometry sub-step that ends in
   equilibrium is differentiated implicitly, with its contact states held
-  (:func:`jaxdem.increment.increment_tangent`): one linear solve with the exact
+  (:func:`jaxdem.core.increment.increment_tangent`): one linear solve with the exact
   tangent per sub-step, for all parameters at once, never a derivative
   through the Newton iterations. The excavation release, the in-situ state
   and the stage ends are chained through exactly.
@@ -43,13 +43,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdem import model as model_mod
-from jaxdem.laws import intact_stiffness, plane_strain_elasticity
+from jaxdem.config import float64
+from jaxdem.core import model as model_mod
+from jaxdem.core.laws import intact_stiffness, plane_strain_elasticity
+from jaxdem.core.sensitivities import SMOOTH_MODEL
+from jaxdem.core.status import Status
 from jaxdem.results import monitor_positions
 from jaxdem.scene import SceneError, apply_overrides
-from jaxdem.sensitivities import SMOOTH_MODEL
-from jaxdem.solver import Data, _stage_plan, gravity_material, run, scene_data
-from jaxdem.status import Status
+from jaxdem.solver import Data, gravity_material, run, scene_data, stage_plan
 
 #: Parameter paths that f can be differentiated with respect to (NAME, I, K are
 #: a name, a list index and a table row).
@@ -68,6 +69,7 @@ _JOINT_FIELD = dict(kn="joint_kn", ks="joint_ks", cohesion="joint_c",
                     tensile_strength="joint_t", friction_deg="joint_tanphi")
 
 
+@float64
 def differentiable(scene, params: Sequence[str], stages: Sequence[str] | None = None):
     """Monitors at the end of the solve as a differentiable function of scene parameters.
 
@@ -105,6 +107,7 @@ class Problem:
     asked for after its derivative costs nothing.
     """
 
+    @float64
     def __init__(self, scene, params: Sequence[str], stages: Sequence[str] | None = None,
                  cache: int = 8):
         if isinstance(params, str) or not params:
@@ -120,10 +123,10 @@ class Problem:
                 raise SceneError(path, err.problem) from None
         self.model, self.state, self.layout = model_mod.build(scene)
         self.data = scene_data(scene, self.layout)
-        self.map = _ParameterMap(scene, self.model, self.layout, self.data, self.paths)
+        self.map = ParameterMap(scene, self.model, self.layout, self.data, self.paths)
         self.theta0 = self.map.theta0
         self.stages = None if stages is None else list(stages)
-        known = ["initial"] + [s["name"] for s in _stage_plan(scene)]
+        known = ["initial"] + [s["name"] for s in stage_plan(scene)]
         for name in self.stages or []:
             if name not in known:
                 raise SceneError("stages", f"no stage named {name!r} (stages: {known})")
@@ -138,6 +141,7 @@ class Problem:
 
     # -- host evaluation ---------------------------------------------------
 
+    @float64
     def evaluate(self, theta, jacobian: bool = False):
         """Monitor vector (n,) at theta and, with ``jacobian``, d vector / d theta (n, p)."""
         theta = np.asarray(theta, float).reshape(len(self.paths))
@@ -199,11 +203,11 @@ class Problem:
 
     @functools.cached_property
     def _readings(self):
-        return jax.jit(functools.partial(_monitor_values, self.layout))
+        return jax.jit(functools.partial(monitor_readings, self.layout))
 
     @functools.cached_property
     def _readings_and_tangents(self):
-        read = functools.partial(_monitor_values, self.layout)
+        read = functools.partial(monitor_readings, self.layout)
 
         def both(now, ref, dnow, dref):
             tangent = lambda dn, dr: jax.jvp(read, (now, ref), (dn, dr))[1]  # noqa: E731
@@ -220,31 +224,43 @@ class Problem:
         the solve with sensitivities (the benchmarks use finite differences).
         """
         n, p = len(self.keys), len(self.paths)
-        out = jax.ShapeDtypeStruct((n,), jnp.float64)
-        jac = jax.ShapeDtypeStruct((n, p), jnp.float64)
 
-        def values(theta):
-            return self.evaluate(theta, False)[0]
+        def flat_of(dtype):
+            """theta -> flat monitor vector in ``dtype``, a jax.custom_jvp over the host solve."""
+            out, jac = jax.ShapeDtypeStruct((n,), dtype), jax.ShapeDtypeStruct((n, p), dtype)
 
-        def values_and_jacobian(theta):
-            if jacobian is not None:
-                return jacobian(np.asarray(theta, float))
-            return self.evaluate(theta, True)
+            def values(theta):
+                return self.evaluate(theta, False)[0].astype(dtype)
 
-        @jax.custom_jvp
-        def flat(theta):
-            return jax.pure_callback(values, out, theta, vmap_method="sequential")
+            def values_and_jacobian(theta):
+                if jacobian is not None:
+                    y, J = jacobian(np.asarray(theta, float))
+                else:
+                    y, J = self.evaluate(theta, True)
+                return np.asarray(y, dtype), np.asarray(J, dtype)
 
-        @flat.defjvp
-        def flat_jvp(primals, tangents):
-            (theta,), (t,) = primals, tangents
-            y, J = jax.pure_callback(values_and_jacobian, (out, jac), theta,
-                                     vmap_method="sequential")
-            return y, J @ t
+            @jax.custom_jvp
+            def flat(theta):
+                return jax.pure_callback(values, out, theta, vmap_method="sequential")
+
+            @flat.defjvp
+            def flat_jvp(primals, tangents):
+                (theta,), (t,) = primals, tangents
+                y, J = jax.pure_callback(values_and_jacobian, (out, jac), theta,
+                                         vmap_method="sequential")
+                return y, J @ t
+
+            return flat
+
+        flats: dict = {}
 
         def f(theta):
-            y = flat(jnp.asarray(theta, jnp.float64))
-            return self.unflatten(y)
+            # The solve runs in float64 (Problem.evaluate); f answers in the caller's
+            # precision: float64 where JAX has x64 on, else float32.
+            theta = jnp.asarray(theta, float)
+            if theta.dtype not in flats:
+                flats[theta.dtype] = flat_of(theta.dtype)
+            return self.unflatten(flats[theta.dtype](theta))
 
         f.problem = self
         return f
@@ -259,7 +275,7 @@ class Problem:
         return out[None] if self.stages is None else out
 
 
-def _monitor_values(layout, now: dict, ref: dict | None) -> dict:
+def monitor_readings(layout, now: dict, ref: dict | None) -> dict:
     """{monitor: (2,) displacement [ux, uy] or (1,) convergence} (m), in jax.numpy.
 
     The same readings as :func:`jaxdem.results.monitor_values`, written so that
@@ -285,7 +301,7 @@ class NotSmooth(SceneError):
     no derivative, and samples that differ in it cannot share one batch."""
 
 
-class _ParameterMap:
+class ParameterMap:
     """Scene parameters -> the model fields and driver loads they set, as a JAX function.
 
     ``apply(theta, derivatives)`` returns the :data:`SMOOTH_MODEL` fields and a

@@ -50,10 +50,11 @@ from typing import Any
 
 import numpy as np
 
+from jaxdem.config import float64
 from jaxdem.results import jsonable, write_json
 from jaxdem.scene import SceneError
 
-#: Outcome labels of a trial (from :class:`jaxdem.status.Status`).
+#: Outcome labels of a trial (from :class:`jaxdem.core.status.Status`).
 STABLE, MECHANISM = "converged", "mechanism"
 #: Statuses of a factor-of-safety search.
 CONVERGED = "converged"          # bracket narrowed to rtol
@@ -162,6 +163,7 @@ def strength_overrides(scene, factor: float, *, intact: bool = False,
             for p, v in strength_parameters(scene, intact=intact, tensile=tensile).items()}
 
 
+@float64
 def factor_of_safety(scene, *, intact: bool = False, tensile: bool = False, trials: int = 8,
                      rtol: float = 0.005, bracket: tuple[float, float] = (0.25, 8.0),
                      limits: tuple[float, float] = (0.01, 100.0), max_rounds: int = 8,

@@ -20,9 +20,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdem.kinematics import _rotate, bolt_geometry, strain_times
-from jaxdem.state import OPEN, SLIP  # contact spring states, as in geometry["contacts"]["state"]
-from jaxdem.status import IMBALANCE_FACTOR, LARGE_SLIP, OVERLAP_TOL, STRENGTH_TOL, Status
+from jaxdem.core.kinematics import bolt_geometry, rotate_vectors, strain_times
+from jaxdem.core.state import OPEN, SLIP
+from jaxdem.core.status import IMBALANCE_FACTOR, LARGE_SLIP, OVERLAP_TOL, STRENGTH_TOL, Status
 
 
 @dataclasses.dataclass
@@ -33,8 +33,10 @@ class Result:
       scene: scene name.
       converged: every increment reached equilibrium within the tolerance.
       stable: no mechanism was found (no block travelled ``max_displacement``).
-      status: ``"converged"``, ``"mechanism"``, ``"iteration_limit"``,
-        ``"capacity_overflow"`` or ``"non_finite"``.
+      status: a :class:`Status`, a ``str`` enumeration equal to its label:
+        ``"converged"``, ``"mechanism"``, ``"iteration_limit"``, ``"capacity_overflow"``,
+        ``"non_finite"``, ``"overlap"``, ``"law_violation"`` or ``"imbalance"`` (the
+        last three: balance found, but not admissible; see ``admissibility``).
       message: one human sentence about the outcome.
       monitors: monitor name -> ``{"displacement": [ux, uy]}`` (m) for a point, or
         ``{"convergence": c, "along": [a_from, a_to]}`` (m) for a section.
@@ -85,7 +87,7 @@ class Result:
     scene: str
     converged: bool
     stable: bool
-    status: str
+    status: Status
     message: str
     monitors: dict[str, dict[str, Any]]
     blocks: list[dict[str, Any]]
@@ -100,13 +102,16 @@ class Result:
     admissibility: dict[str, Any] = dataclasses.field(default_factory=dict)
     warnings: list[str] = dataclasses.field(default_factory=list)
 
+    def __post_init__(self):
+        self.status = Status(self.status)  # a label given as a plain string, too
+
     def to_dict(self) -> dict[str, Any]:
         """The content of ``result.json``: plain JSON types only."""
         out = {
             "scene": self.scene,
             "converged": self.converged,
             "stable": self.stable,
-            "status": self.status,
+            "status": self.status.value,
             "message": self.message,
             "monitors": self.monitors,
             "blocks": self.blocks,
@@ -164,7 +169,7 @@ def jsonable(x: Any, finite: bool = False) -> Any:
 @jax.jit
 def _material_points(centroid, rot, strain, blocks, offsets, weights):
     """Weighted mean over holders of c + (I + E) R(rot) offset: (n, H) blocks -> (n, 2) points."""
-    r = _rotate(offsets, rot[blocks])
+    r = rotate_vectors(offsets, rot[blocks])
     p = centroid[blocks] + r + strain_times(strain[blocks], r)
     return jnp.sum(weights[..., None] * p, axis=-2)
 
@@ -177,7 +182,7 @@ def _material_moves(u, rot, strain, blocks, offsets, weights):
     float32 a position near y = 2.5 m is resolved to 2.4e-7 m, which is 1.5e-3 of a
     0.16 mm settlement.
     """
-    r = _rotate(offsets, rot[blocks])
+    r = rotate_vectors(offsets, rot[blocks])
     d = u[blocks] + r + strain_times(strain[blocks], r) - offsets
     return jnp.sum(weights[..., None] * d, axis=-2)
 
@@ -224,7 +229,8 @@ def monitor_values(layout, state, ref=None) -> dict[str, dict[str, Any]]:
     """Monitor readings of a state: point displacement or section convergence (m).
 
     A point monitor follows the material point of the rock block that held it
-    at the start (the mean of those of the blocks whose common face it lies on). A section's convergence is the shortening of the distance
+    at the start (the mean of those of the blocks whose common face it lies on). A section's
+    convergence is the shortening of the distance
     between its two material points (positive when they approach); ``along``
     is each end's displacement projected on the section direction from -> to.
     Displacements are measured from ``ref`` (a state), else from the start.
@@ -321,7 +327,7 @@ function compiled some thirty primitives (0.5 s of the demo's result)."""
 def bolt_anchors(model, state, layout=None) -> list[np.ndarray]:
     """Current anchor positions of each bolt: a list of (2, 2) arrays (m), for plotting.
 
-    The same anchors the solver uses (:func:`jaxdem.kinematics.bolt_geometry`), one
+    The same anchors the solver uses (:func:`jaxdem.core.kinematics.bolt_geometry`), one
     per scene bolt (the mean of its sub-bolts' when an anchor lies on a shared
     face); empty when the model has no bolts.
     """
@@ -382,7 +388,7 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
     """
     nr = layout.n_rock
     snap = {k: np.asarray(v) for k, v in info["snapshot"].items()}
-    status = Status(int(info["status"]))
+    status = Status.of(info["status"])
     travel = np.asarray(info["travel"])[:nr]
     max_disp = float(model.max_displacement)
     last = records[-1]
@@ -490,7 +496,7 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
     hist = [{"stage": h["stage"], "step": h["step"], "load_factor": h["load_factor"],
              "monitors": {k: _scalar(v) for k, v in h["monitors"].items()}} for h in history]
     return Result(
-        scene=scene.name, converged=converged, stable=stable, status=status.label,
+        scene=scene.name, converged=converged, stable=stable, status=status,
         message=message, monitors=monitors, blocks=blocks, contacts=contacts, bolts=bolts,
         stages=stages, moving_blocks=moving, equilibrium=equilibrium, timing=timing,
         geometry=geometry, history=hist, admissibility=admissibility, warnings=warnings,

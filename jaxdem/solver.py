@@ -2,17 +2,17 @@
 
 Owns :func:`solve` (scene -> :class:`jaxdem.results.Result`, the only place a
 Result is built), :func:`run` and :class:`_Driver` (the host loop over stages
-and load steps), :func:`_stage_plan`, the driver's inputs :class:`Data` and
+and load steps), :func:`stage_plan`, the driver's inputs :class:`Data` and
 :func:`scene_data`, and :func:`run_increment` (one increment, growing the
 contact capacity on overflow).
 
-Data flow: the top of the solver. Scene -> :func:`jaxdem.model.build` -> device
-Model and State -> increments (:mod:`jaxdem.increment`, compiled through
-:mod:`jaxdem.compile_cache`) with loads from :mod:`jaxdem.loads` -> Result
+Data flow: the top of the solver. Scene -> :func:`jaxdem.core.model.build` -> device
+Model and State -> increments (:mod:`jaxdem.core.increment`, compiled through
+:mod:`jaxdem.core.compile_cache`) with loads from :mod:`jaxdem.core.loads` -> Result
 (:mod:`jaxdem.results`). The pieces below, from the bottom up:
-:mod:`jaxdem.status`, :mod:`jaxdem.kinematics`, :mod:`jaxdem.springs`,
-:mod:`jaxdem.linsolve`, :mod:`jaxdem.loads`, :mod:`jaxdem.substep`,
-:mod:`jaxdem.sensitivities`, :mod:`jaxdem.increment`. ``Status`` and
+:mod:`jaxdem.core.status`, :mod:`jaxdem.core.kinematics`, :mod:`jaxdem.core._springs`,
+:mod:`jaxdem.core._linsolve`, :mod:`jaxdem.core.loads`, :mod:`jaxdem.core._substep`,
+:mod:`jaxdem.core.sensitivities`, :mod:`jaxdem.core.increment`. ``Status`` and
 ``COMPILE_TIMES`` are re-exported here for callers of ``jaxdem.solver``.
 """
 
@@ -25,19 +25,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdem import model as model_mod
-from jaxdem.compile_cache import COMPILE_TIMES, QUICK_WORK, _compiled, prefetch
-from jaxdem.increment import increment, increment_tangent
-from jaxdem.loads import _preload, _release_jit, make_loads
+from jaxdem.config import float64
+from jaxdem.core import model as model_mod
+from jaxdem.core.compile_cache import COMPILE_TIMES, QUICK_WORK, compiled_program, prefetch
+from jaxdem.core.increment import increment, increment_tangent
+from jaxdem.core.loads import in_situ_preload, make_loads, release_forces_jit
+from jaxdem.core.sensitivities import STATE_FLOATS, preload_tangent, release_with_tangent
+from jaxdem.core.state import Loads, Model, State, grow_capacity
+from jaxdem.core.status import Status, global_imbalance
 from jaxdem.results import build_result, monitor_values
-from jaxdem.sensitivities import STATE_FLOATS, _preload_tangent, _release_with_tangent
-from jaxdem.state import Loads, Model, State, grow_capacity
-from jaxdem.status import Status, _imbalance
 
 __all__ = ["COMPILE_TIMES", "Data", "Status", "gravity_material", "increment_count", "run",
            "run_increment", "scene_data", "solve"]
 
 
+@float64
 def solve(scene, set: dict | None = None, progress=None):
     """Solve a scene: load steps, in-situ stress and stages, each to static equilibrium.
 
@@ -87,12 +89,12 @@ def run(scene, model: Model, state: State, layout, data: Data, progress=None,
     for the state before the first stage). ``driver``, if given, replaces the
     single-solve :class:`_Driver` (``jaxdem.batch`` passes one that solves a
     batch of samples, with ``data`` stacked over the samples). ``quick``: compile
-    the programs for a brief run (:data:`jaxdem.compile_cache.QUICK_COMPILER_OPTIONS`);
+    the programs for a brief run (:data:`jaxdem.core.compile_cache.QUICK_COMPILER_OPTIONS`);
     None decides by the size of the solve: a single small solve (blocks x
-    increments up to :data:`jaxdem.compile_cache.QUICK_WORK`, no sensitivities).
+    increments up to :data:`jaxdem.core.compile_cache.QUICK_WORK`, no sensitivities).
     A caller that solves the same scene many times passes False.
     """
-    plan = _stage_plan(scene)
+    plan = stage_plan(scene)
     if driver is None:
         if quick is None:
             quick = data.p == 0 and model.n_blocks * increment_count(scene, layout) <= QUICK_WORK
@@ -165,10 +167,10 @@ def run(scene, model: Model, state: State, layout, data: Data, progress=None,
 def increment_count(scene, layout) -> int:
     """How many increments a solve of ``scene`` takes (if each finds equilibrium)."""
     first = 1 if scene.in_situ is not None else layout.load_steps
-    return first + sum(stage["load_steps"] or layout.load_steps for stage in _stage_plan(scene))
+    return first + sum(stage["load_steps"] or layout.load_steps for stage in stage_plan(scene))
 
 
-def _stage_plan(scene) -> list[dict]:
+def stage_plan(scene) -> list[dict]:
     """The stages after the initial state, in order, with what each one does."""
     excavations = scene.excavations
     stages = list(scene.stages)
@@ -206,8 +208,8 @@ class Data:
         and ground surface (m).
       water_x: (X,) abscissae of the water tables (m); water_y: (1 + p, X) the
         scene's table; stage_water: {stage name: (1 + p, X)}.
-      dmodel: {field: (p, ...)} derivatives of the model's :data:`jaxdem.sensitivities.SMOOTH_MODEL`
-        fields (None when p = 0).
+      dmodel: {field: (p, ...)} derivatives of the model's
+        :data:`jaxdem.core.sensitivities.SMOOTH_MODEL` fields (None when p = 0).
     """
 
     weight: np.ndarray
@@ -268,7 +270,7 @@ class _Driver:
     """Host loop over stages and load steps; collects the records of a Result.
 
     With derivatives (``data.p > 0``) it carries ``dstate``, the derivatives
-    of the state's :data:`jaxdem.sensitivities.STATE_FLOATS` with respect to the p parameters.
+    of the state's :data:`jaxdem.core.sensitivities.STATE_FLOATS` with respect to the p parameters.
     """
 
     def __init__(self, model, state, layout, data: Data, progress, quick: bool = False):
@@ -327,11 +329,11 @@ class _Driver:
         if tangents is not None:
             self.dstate = info["dstate"]
             self.approximate |= bool(info["approximate"])
-        self.status = Status(int(info["status"]))
+        self.status = Status.of(info["status"])
         bal, jm = info["balance"], info["joints"]
         rec = dict(stage=stage, step=k, load_factor=k / n, status=self.status,
                    iterations=int(info["iterations"]), substeps=int(info["substeps"]),
-                   residual=float(info["residual"]), imbalance=_imbalance(bal),
+                   residual=float(info["residual"]), imbalance=global_imbalance(bal),
                    overlap=float(bal["overlap"]), overlap_rel=float(bal["overlap_rel"]),
                    strength_excess=float(bal["excess"]),
                    slip=float(jm["slip"]), slip_rel=float(jm["slip_rel"]),
@@ -355,9 +357,9 @@ class _Driver:
             return out
         snap, rm = self.info["snapshot"], jnp.asarray(removed)
         if self.dstate is None:
-            out[0] = np.asarray(_release_jit(self.state.centroid, snap, rm, D))
+            out[0] = np.asarray(release_forces_jit(self.state.centroid, snap, rm, D))
             return out
-        value, tangent = _release_with_tangent(self.state.centroid, snap, rm,
+        value, tangent = release_with_tangent(self.state.centroid, snap, rm,
                                                self.dstate["centroid"], self.info["dsnapshot"], D)
         out[0], out[1:] = np.asarray(value), np.asarray(tangent)
         return out
@@ -370,13 +372,13 @@ class _Driver:
         loads, dloads = self.loads(base)
         while True:
             if self.dstate is None:
-                pre, dt = _compiled(_preload, self.model, self.state, loads, *args, mode=mode,
-                                    quick=self.quick)
+                pre, dt = compiled_program(in_situ_preload, self.model, self.state, loads, *args,
+                                           mode=mode, quick=self.quick)
                 self.compile_s += dt
                 st, overflow = pre(self.model, self.state, loads, *args)
             else:
                 dargs = tuple(jnp.asarray(x[1:], self.layout.dtype) for x in stacks)
-                st, overflow, self.dstate = _preload_tangent(
+                st, overflow, self.dstate = preload_tangent(
                     self.model, self.state, loads, args, data.dmodel, dloads, dargs, mode=mode)
             if not bool(overflow):
                 break
@@ -390,20 +392,20 @@ def run_increment(model: Model, state: State, loads: Loads, tangents: dict | Non
 
     Returns (model, state, info, compile_s): the model changes only when a
     grid cell capacity grew. Growing recompiles; nothing is ever truncated.
-    With ``tangents`` (see :func:`jaxdem.increment.increment_tangent`) the state's derivatives
+    With ``tangents`` (see :func:`jaxdem.core.increment.increment_tangent`) the state's derivatives
     are carried along (``info["dstate"]``). ``quick``: compile for a brief run
-    (:func:`jaxdem.compile_cache._compiled`).
+    (:func:`jaxdem.core.compile_cache.compiled_program`).
     """
     compile_s = 0.0
     while True:
         if tangents is None:
-            fn, dt = _compiled(increment, model, state, loads, quick=quick)
+            fn, dt = compiled_program(increment, model, state, loads, quick=quick)
             new, info = fn(model, state, loads)
         else:
-            fn, dt = _compiled(increment_tangent, model, state, loads, tangents)
+            fn, dt = compiled_program(increment_tangent, model, state, loads, tangents)
             new, info = fn(model, state, loads, tangents)
         compile_s += dt
-        if int(info["status"]) != Status.CAPACITY_OVERFLOW:
+        if Status.of(info["status"]) != Status.CAPACITY_OVERFLOW:
             return model, new, info, compile_s
         if bool(info["cell_full"]):
             model = dataclasses.replace(model, cell_capacity=2 * model.cell_capacity)

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxdem.batch import BatchResult, solve_batch
+from jaxdem.config import float64
 from jaxdem.differentiable import NotSmooth
 from jaxdem.results import jsonable
 from jaxdem.scene import SceneError, apply_overrides
@@ -254,6 +255,7 @@ class SweepResult:
             probability=self.probability, tornado=self.tornado, timing=self.batch.timing))
 
 
+@float64
 def sweep(scene, vary: Sequence[Variable | str] | Mapping, samples: int, *,
           method: str | None = None, seed: int = 0, tornado: bool = True,
           chunk: int | None = None, devices=None, progress=None) -> SweepResult:

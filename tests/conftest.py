@@ -1,4 +1,6 @@
-"""Test configuration: float64, the shared scene builders on the path, hypothesis profiles.
+"""Test configuration: jaxdem's process-wide settings (float64, one OpenBLAS thread, the
+compilation cache: jaxdem.config.configure, as the command line makes them), the shared
+scene builders on the path, hypothesis profiles.
 
 Hypothesis profiles (used by tests/test_properties.py):
 
@@ -12,10 +14,11 @@ import os
 import sys
 from pathlib import Path
 
-import jax
 from hypothesis import HealthCheck, Phase, settings
 
-jax.config.update("jax_enable_x64", True)
+from jaxdem import config as jaxdem_config
+
+jaxdem_config.configure()
 sys.path.insert(0, str(Path(__file__).parent))
 
 # Each example is a whole solve (seconds, a JAX compilation for each new shape): no

@@ -23,11 +23,9 @@ from test_cli import SCENE
 from test_scene import _set, rock_scene_dict, setting, valid_scene_dict
 
 import jaxdem
-from jaxdem import scene_toml
 from jaxdem.cli import main
-from jaxdem.scene import load_scene, parse_scene
-from jaxdem.scene_fields import SceneError
-from jaxdem.scene_overrides import apply_overrides, parse_set_arguments
+from jaxdem.scene import SceneError, apply_overrides, load_scene, parse_scene, parse_set_arguments
+from jaxdem.scene import _toml as scene_toml
 
 SQUARE = [[1.0, 1.0], [2.0, 1.0], [2.0, 2.0], [1.0, 2.0]]
 
@@ -346,7 +344,8 @@ def test_python_interface_raises_scene_error_naming_the_input(call, path):
 @pytest.fixture
 def no_computation(monkeypatch):
     """Make any solve, batch, model build or rock-mass generation fail the test."""
-    from jaxdem import batch, model, rockmass, solver
+    from jaxdem import batch, rockmass, solver
+    from jaxdem.core import model
 
     def forbidden(*args, **kwargs):
         raise AssertionError("computation started before the input was refused")

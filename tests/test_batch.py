@@ -17,10 +17,11 @@ from hypothesis import strategies as st
 from scenes import block_on_incline, jointed_tunnel
 
 import jaxdem
-from jaxdem import batch, compile_cache
+from jaxdem import batch
 from jaxdem.batch import solve_batch
+from jaxdem.core import compile_cache
+from jaxdem.core.model import bucket
 from jaxdem.differentiable import Problem
-from jaxdem.model import bucket
 from jaxdem.scene import SceneError, parse_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -152,7 +153,7 @@ def test_several_cpu_devices_take_one_sample_each():
     refused before any work: jaxlib's batched LAPACK kernels on several CPU devices at
     once can deadlock (batch._one_per_device). One device keeps its cache-sized chunk."""
     scene = parse_scene(block_on_incline(25.0, 30.0))
-    model, state, _ = jaxdem.model.build(scene)
+    model, state, _ = jaxdem.core.model.build(scene)
     cpu = jax.devices("cpu")[0]
     assert batch._chunk_size(model, state, 64, [cpu, cpu]) == 1
     assert batch._chunk_size(model, state, 64, [cpu]) > 1
@@ -205,7 +206,7 @@ def test_a_stored_program_is_found_only_for_its_own_key():
     """The stored programs' key holds what decides a program without tracing it: the
     argument tree with its static fields (here the linear solver), the shapes, the
     static arguments and the XLA options. A change of any gives another file."""
-    from jaxdem import compile_cache
+    from jaxdem.core import compile_cache
 
     x = {"a": jnp.zeros(3)}
     leaves, tree = jax.tree.flatten(x)

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from jaxdem.cli import main
-from jaxdem.cli_progress import ProgressBar
+from jaxdem.cli._progress import ProgressBar
+from jaxdem.core.state import STICK
 from jaxdem.results import Result
-from jaxdem.state import STICK
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -430,25 +430,25 @@ def test_help_names_the_real_default_out_dir(capsys):
 
 
 def test_scene_summary_counts_generated_blocks_and_plurals(scene_file):
-    from jaxdem.cli_summaries import _scene_summary
+    from jaxdem.cli._summaries import scene_summary
     from jaxdem.rockmass import generate
     from jaxdem.scene import load_scene
 
-    assert _scene_summary(load_scene(scene_file)) == "2 blocks, 1 joint, 1 monitor"
+    assert scene_summary(load_scene(scene_file)) == "2 blocks, 1 joint, 1 monitor"
     demo = load_scene("jaxdem/data/demo.toml")
     n = len(generate(demo).pieces)
     assert n > 400
-    assert _scene_summary(demo).startswith(f"{n:,} blocks ({n:,} generated), 2 joints")
+    assert scene_summary(demo).startswith(f"{n:,} blocks ({n:,} generated), 2 joints")
 
 
 def test_stage_counter_counts_the_stages_the_solver_reports():
-    from jaxdem.cli_summaries import _stage_count
+    from jaxdem.cli._summaries import stage_count
     from jaxdem.scene import load_scene
 
     # The demo: the in-situ state, then one excavation stage ("1/2, 2/2", not "3/3").
-    assert _stage_count(load_scene("jaxdem/data/demo.toml")) == 2
+    assert stage_count(load_scene("jaxdem/data/demo.toml")) == 2
     # Two [[stages]] after the in-situ state.
-    assert _stage_count(load_scene("examples/staged_tunnel.toml")) == 3
+    assert stage_count(load_scene("examples/staged_tunnel.toml")) == 3
     bar = ProgressBar(n_stages=3, stream=_Stream(False), width=10)
     seen = [bar.format(_event(stage, 1)).split(" [")[0]
             for stage in ("initial", "heading", "bench")]

@@ -1,4 +1,4 @@
-"""The compiled-program registry's overlap of work with XLA compilation (jaxdem.compile_cache).
+"""The compiled-program registry's overlap of work with XLA compilation (jaxdem.core.compile_cache).
 
 XLA compiles without Python's global interpreter lock. ``prefetch`` traces a
 program on the caller's thread and compiles it on another; ``_compiled`` then
@@ -15,9 +15,11 @@ import pytest
 from scenes import block_on_incline, jointed_tunnel
 
 import jaxdem
-from jaxdem import compile_cache, solver, substep
-from jaxdem import model as model_mod
-from jaxdem.increment import increment
+from jaxdem import solver
+from jaxdem.core import _substep as substep
+from jaxdem.core import compile_cache
+from jaxdem.core import model as model_mod
+from jaxdem.core.increment import increment
 from jaxdem.scene import parse_scene
 
 
@@ -40,9 +42,9 @@ def test_a_prefetched_program_is_collected_not_compiled_again(xla_compiles):
     x = jnp.arange(7.0)  # a shape no other test compiles f for
     compile_cache._PENDING.clear()
     compile_cache.prefetch(f, x)
-    compiled, _ = compile_cache._compiled(f, x)
+    compiled, _ = compile_cache.compiled_program(f, x)
     np.testing.assert_array_equal(np.asarray(compiled(x)), 2.0 * np.arange(7.0) + 1.0)
-    again, waited = compile_cache._compiled(f, x)
+    again, waited = compile_cache.compiled_program(f, x)
     assert again is compiled and waited == 0.0
     assert len(xla_compiles) == 1 and xla_compiles[0].startswith("jaxdem-compile")
     assert not compile_cache._PENDING
@@ -55,7 +57,7 @@ def test_a_prefetched_program_never_collected_is_let_go():
     compile_cache.prefetch(f, jnp.zeros(5))
     compile_cache.prefetch(f, jnp.zeros(6))
     assert len(compile_cache._PENDING) == 1
-    compiled, _ = compile_cache._compiled(f, jnp.zeros(6))
+    compiled, _ = compile_cache.compiled_program(f, jnp.zeros(6))
     assert not compile_cache._PENDING
     np.testing.assert_array_equal(np.asarray(compiled(jnp.ones(6))), np.zeros(6))
 
@@ -68,7 +70,7 @@ def test_a_prefetch_that_fails_leaves_the_error_to_the_call_that_needs_it():
     x = jnp.zeros(3)
     compile_cache.prefetch(bad, x)  # nothing raised here
     with pytest.raises(ValueError, match="no program for this"):
-        compile_cache._compiled(bad, x)
+        compile_cache.compiled_program(bad, x)
 
 
 def test_host_work_runs_once_while_a_program_compiles(xla_compiles):
@@ -81,9 +83,9 @@ def test_host_work_runs_once_while_a_program_compiles(xla_compiles):
 
     compile_cache.while_compiling(task)
     f = jax.jit(lambda x: jnp.sin(x) * 3.0)
-    compile_cache._compiled(f, jnp.zeros(11))
+    compile_cache.compiled_program(f, jnp.zeros(11))
     assert done.wait(10.0)
-    compile_cache._compiled(f, jnp.zeros(12))  # a second compilation: the task is spent
+    compile_cache.compiled_program(f, jnp.zeros(12))  # a second compilation: the task is spent
     assert ran == ["jaxdem-host-task"] and len(xla_compiles) == 2
 
 
@@ -91,13 +93,13 @@ def test_the_increment_traces_its_sub_step_once(monkeypatch):
     """The loop's carry shapes and its body share one trace of the sub-step (a second trace
     cost 0.1-0.2 s of every cold run)."""
     traced = []
-    prepare = substep._prepare
+    prepare = substep.prepare_substep
 
     def counted(*args):
         traced.append(1)
         return prepare(*args)
 
-    monkeypatch.setattr(substep, "_prepare", counted)
+    monkeypatch.setattr(substep, "prepare_substep", counted)
     jax.clear_caches()
     scene = parse_scene(block_on_incline(30.0, 35.0))
     model, state, layout = model_mod.build(scene)
@@ -142,10 +144,10 @@ def test_a_prefetched_program_counts_in_the_bound_of_kept_programs(monkeypatch, 
     compile_cache.on_disk("test_square")(f)
     try:
         x, y = jnp.zeros(13), jnp.zeros(14)
-        compile_cache._compiled(f, x)  # compiled and stored
+        compile_cache.compiled_program(f, x)  # compiled and stored
         compile_cache._COMPILED.clear()
         assert compile_cache.prefetch(f, y) > 0.0  # traced, compiles in the background
-        compile_cache._compiled(f, y)
+        compile_cache.compiled_program(f, y)
         assert compile_cache.prefetch(f, x) > 0.0  # loaded from the store
         assert len(compile_cache._COMPILED) == 1
         assert compile_cache.prefetch(f, x) == 0.0  # there already

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 from scenes import ROCK
 
-from jaxdem import model as model_mod
-from jaxdem.contact import broad_phase, narrow_phase
+from jaxdem.core import model as model_mod
+from jaxdem.core._contact import broad_phase, narrow_phase
 from jaxdem.scene import parse_scene
 
 

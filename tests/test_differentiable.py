@@ -14,8 +14,8 @@ import pytest
 from scenes import jointed_tunnel, stack
 
 import jaxdem
+from jaxdem.core.laws import equivalent_stiffness, intact_stiffness
 from jaxdem.differentiable import Problem
-from jaxdem.laws import equivalent_stiffness, intact_stiffness
 from jaxdem.scene import SceneError, parse_scene
 
 
@@ -91,12 +91,12 @@ def test_tunnel_cohesion_derivative_is_small_and_matches_central_differences(tun
 
 def test_active_slots_alone_give_the_whole_detections_derivatives(monkeypatch):
     """The sensitivities differentiate only the active slots, gathered into S / 4 places
-    (jaxdem.sensitivities._sub_tangents); a sub-step with more active slots differentiates
+    (jaxdem.core.sensitivities._sub_tangents); a sub-step with more active slots differentiates
     the whole detection. Both give the same derivatives of a sub-step's new state and
     contact snapshot: an inactive slot carries no force whatever its geometry. Checked on
     the last increment of the slipping tunnel (water, bolts, slip, open contacts)."""
     import jaxdem.solver as solver_mod
-    from jaxdem.sensitivities import ACTIVE_SHARE, _substep_tangent
+    from jaxdem.core.sensitivities import ACTIVE_SHARE, substep_tangent
 
     calls = []
     run_increment = solver_mod.run_increment
@@ -115,7 +115,7 @@ def test_active_slots_alone_give_the_whole_detections_derivatives(monkeypatch):
     S = state.fs.size
 
     def tangents_and_active(share):
-        forward, derivatives = _substep_tangent(*args, active_share=share)
+        forward, derivatives = substep_tangent(*args, active_share=share)
         return derivatives, forward[5]["active"]  # the sub-step's contact snapshot
 
     (dstate, dsnap), active = jax.jit(lambda: tangents_and_active(ACTIVE_SHARE))()

@@ -9,13 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxdem import scene_schema
-from jaxdem.scene_checks import OVERLAP_TOLERANCE
+from jaxdem.scene import OVERLAP_TOLERANCE
+from jaxdem.scene import _schema as scene_schema
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "scene-format.md"
 
-# Section -> the parser's tuple of accepted fields (read from jaxdem.scene_schema, so that a
+# Section -> the parser's tuple of accepted fields (read from jaxdem.scene._schema, so that a
 # field added to the parser fails here until it is documented).
 SECTIONS = {
     "scene": "SCENE_FIELDS",

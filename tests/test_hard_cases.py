@@ -41,12 +41,12 @@ from scenes import ROCK, block_on_incline, incline_frame, rect_on_slope, slope_b
 from test_properties import strength_violations
 
 import jaxdem
-from jaxdem import model as model_mod
 from jaxdem import solver
+from jaxdem.core import model as model_mod
+from jaxdem.core.laws import equivalent_stiffness, intact_stiffness
+from jaxdem.core.status import Status
 from jaxdem.geometry import centroid
-from jaxdem.laws import equivalent_stiffness, intact_stiffness
 from jaxdem.scene import parse_scene
-from jaxdem.status import Status
 
 DTYPES = ["float64", "float32"]
 TOL = {"float64": {"rel": 1e-5, "abs": 0.0}, "float32": {"rel": 1e-3, "abs": 5e-7}}

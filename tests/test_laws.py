@@ -5,8 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxdem.laws import equivalent_stiffness, forces_in_state, intact_stiffness, mohr_coulomb
-from jaxdem.state import OPEN, SLIP, STICK
+from jaxdem.core.laws import equivalent_stiffness, forces_in_state, intact_stiffness, mohr_coulomb
+from jaxdem.core.state import OPEN, SLIP, STICK
 
 
 def test_intact_stiffness_eqs_3_4():

@@ -7,9 +7,11 @@ import matplotlib.collections
 import numpy as np
 import pytest
 
-from jaxdem import plots, plots_canvas, plots_model
+from jaxdem import plots
+from jaxdem.core.state import OPEN, SLIP, STICK
+from jaxdem.plots import _canvas as plots_canvas
+from jaxdem.plots import _model as plots_model
 from jaxdem.results import Result
-from jaxdem.state import OPEN, SLIP, STICK
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -143,7 +145,7 @@ def test_nice_magnification(size, u_max, expected):
 
 def test_largest_per_cell_keeps_one_per_cell():
     pts = np.array([[0.1, 0.1], [0.2, 0.2], [0.9, 0.9], [0.95, 0.95]])
-    keep = plots_canvas._largest_per_cell(pts, np.array([1.0, 3.0, 2.0, 0.5]), 2)
+    keep = plots_canvas.largest_per_cell(pts, np.array([1.0, 3.0, 2.0, 0.5]), 2)
     assert keep.tolist() == [False, True, True, False]
 
 
@@ -334,7 +336,7 @@ def test_many_block_stresses_are_thinned(tmp_path):
         stress=stress,
         centroids=c,
     )
-    keep = plots_canvas._nearest_centre_per_cell(c, np.ones(len(c), dtype=bool),
+    keep = plots_canvas.nearest_centre_per_cell(c, np.ones(len(c), dtype=bool),
                                                  plots_model._CROSS_GRID)
     assert keep.sum() == plots_model._CROSS_GRID**2
     _assert_png(plots.plot_principal_stresses(result, tmp_path / "stresses.png"))

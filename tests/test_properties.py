@@ -7,7 +7,7 @@ supports, bolts, boundaries and load steps) and small hand-built block assemblie
 (stacks, blocks on inclines, wedges between fixed blocks). For every sample:
 
 - result.json is standard JSON: no NaN or infinity anywhere in ``to_dict()``;
-- a converged result is admissible: no overlap beyond ``jaxdem.status.OVERLAP_TOL`` of the
+- a converged result is admissible: no overlap beyond ``jaxdem.core.status.OVERLAP_TOL`` of the
   block's size, and in global equilibrium (relative imbalance of every increment
   <= 1e-8 with ``solver.tolerance`` = 1e-9, <= 10 x tolerance at the default tolerance)
   and every contact spring satisfies its strength law (tension cut-off and
@@ -47,12 +47,13 @@ from hypothesis import strategies as st
 from scenes import block_on_incline, rect_on_slope, slope_base
 
 import jaxdem
-from jaxdem import compile_cache, geometry, solver
-from jaxdem.contact import narrow_phase
-from jaxdem.laws import slot_properties
+from jaxdem import geometry, solver
+from jaxdem.core import compile_cache
+from jaxdem.core._contact import narrow_phase
+from jaxdem.core.laws import slot_properties
+from jaxdem.core.state import OPEN, SLIP
+from jaxdem.core.status import OVERLAP_TOL
 from jaxdem.scene import SolverSettings, parse_scene
-from jaxdem.state import OPEN, SLIP
-from jaxdem.status import OVERLAP_TOL
 
 WALL_TIME_S = 60.0
 """Largest wall time of one solve (s), compilation included, on a 2-core CPU."""

@@ -11,7 +11,7 @@ import pytest
 
 from jaxdem import geometry
 from jaxdem.rockmass import RockMass, generate
-from jaxdem.rockmass_mesh import _graded_squares
+from jaxdem.rockmass._mesh import graded_squares
 from jaxdem.scene import SceneError, parse_scene
 
 ROCK = {"E": 1.0e7, "nu": 0.25, "unit_weight": 25.0}
@@ -236,7 +236,7 @@ def test_graded_mesh_is_fine_at_the_opening_and_coarse_far_away():
     # The quadtree behind it: 0.25 m squares at the opening, 2 m ones (the
     # largest power-of-two multiple of 0.25 up to mesh_max_size) far from it, and
     # no square larger than h + GROWTH * (its distance to the opening).
-    sq = _graded_squares((0.0, 0.0, 16.0, 16.0), 0.25, 2.0, [scene.excavations[0].vertices])
+    sq = graded_squares((0.0, 0.0, 16.0, 16.0), 0.25, 2.0, [scene.excavations[0].vertices])
     assert np.sum(sq[:, 2] ** 2) == pytest.approx(256.0)
     centre = sq[:, :2] + 0.5 * sq[:, 2:3]
     gap = np.maximum(np.linalg.norm(centre - 8.0, axis=1) - 1.0 - sq[:, 2] / math.sqrt(2), 0)

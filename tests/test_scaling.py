@@ -9,14 +9,14 @@ import pytest
 from scenes import jointed_tunnel, stack
 
 import jaxdem
-from jaxdem import model as model_mod
-from jaxdem.increment import increment
-from jaxdem.linsolve import _compact_terms, _solve_cg, _solve_dense
-from jaxdem.loads import make_loads
+from jaxdem.core import model as model_mod
+from jaxdem.core._linsolve import compact_terms, solve_cg, solve_dense
+from jaxdem.core._springs import evaluate, stiffness_terms
+from jaxdem.core._substep import prepare_substep
+from jaxdem.core.increment import increment
+from jaxdem.core.loads import make_loads
+from jaxdem.core.status import Status
 from jaxdem.scene import parse_scene
-from jaxdem.springs import _evaluate, _stiffness_terms
-from jaxdem.status import Status
-from jaxdem.substep import _prepare
 
 
 def _with_solver(d, **kw):
@@ -55,7 +55,7 @@ def test_iterative_path_vmaps():
     lams = jnp.array([0.5, 1.0])
     batch = jax.vmap(lambda lam: make_loads(model, lam * model.f_ext))(lams)
     states, info = jax.vmap(increment, in_axes=(None, None, 0))(model, state, batch)
-    assert (np.asarray(info["status"]) == Status.CONVERGED).all()
+    assert (np.asarray(info["status"]) == Status.CONVERGED.code).all()
     dense = dataclasses.replace(model, linear_solver="dense")
     for k, lam in enumerate(lams):
         s1, _ = increment(dense, state, make_loads(model, lam * model.f_ext))
@@ -68,16 +68,16 @@ def test_pcg_and_compaction_match_a_dense_solve():
     """The packed rank-one terms and PCG give (K + eps M)^-1 R of the assembled matrix."""
     model, state, _ = model_mod.build(parse_scene(stack(4)))
     loads = make_loads(model, model.f_ext)
-    mdl, sub, st0, _, _ = _prepare(model, state, loads)
-    ev = _evaluate(mdl, sub, jnp.zeros_like(loads.force), jnp.zeros_like(st0, bool), st0,
+    mdl, sub, st0, _, _ = prepare_substep(model, state, loads)
+    ev = evaluate(mdl, sub, jnp.zeros_like(loads.force), jnp.zeros_like(st0, bool), st0,
                           st0, 0.0)
-    terms = _stiffness_terms(mdl, sub, ev, False)
-    packed = _compact_terms(mdl, terms)
+    terms = stiffness_terms(mdl, sub, ev, False)
+    packed = compact_terms(mdl, terms)
     assert packed[3].shape[0] < terms[3].shape[0]
     assert np.isclose(np.sum(np.abs(packed[3])), np.sum(np.abs(terms[3])))
-    x_cg = _solve_cg(mdl, sub, terms, ev["R"], 1e-12)
+    x_cg = solve_cg(mdl, sub, terms, ev["R"], 1e-12)
     a, b, B, k = terms
-    x_dense = _solve_dense(mdl, sub, (a, b, B, B, k), ev["R"])
+    x_dense = solve_dense(mdl, sub, (a, b, B, B, k), ev["R"])
     np.testing.assert_allclose(np.asarray(x_cg), np.asarray(x_dense), rtol=0,
                                atol=1e-9 * np.abs(np.asarray(x_dense)).max())
 

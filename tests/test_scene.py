@@ -13,10 +13,18 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from jaxdem.scene import Scene, load_scene, parse_scene
-from jaxdem.scene_fields import SceneError
-from jaxdem.scene_overrides import apply_overrides, parse_set_arguments
-from jaxdem.scene_schema import InSitu, Joint, SolverSettings, Support
+from jaxdem.scene import (
+    InSitu,
+    Joint,
+    Scene,
+    SceneError,
+    SolverSettings,
+    Support,
+    apply_overrides,
+    load_scene,
+    parse_scene,
+    parse_set_arguments,
+)
 
 VALID_TOML = """
 [scene]
@@ -948,7 +956,7 @@ def test_rock_refusal(mutation, path, words):
 
 
 def test_rock_scene_check_figure(tmp_path: Path):
-    from jaxdem.plots_scene import plot_scene_check
+    from jaxdem.plots._scene import plot_scene_check
 
     path = plot_scene_check(parse_scene(rock_scene_dict()), tmp_path / "check.png")
     assert path.stat().st_size > 10_000
@@ -976,7 +984,7 @@ def test_several_joints_without_default_joint_are_refused():
 
 
 def test_default_joint_or_block_joint_settles_the_faces():
-    from jaxdem.model import build
+    from jaxdem.core.model import build
 
     data = two_joint_dict()
     data["scene"]["default_joint"] = "j"
@@ -1002,7 +1010,7 @@ def test_default_joint_or_block_joint_settles_the_faces():
 
 
 def test_order_of_joint_sections_does_not_matter_with_default_joint():
-    from jaxdem.model import build
+    from jaxdem.core.model import build
 
     rows = []
     for order in (("weak", "j"), ("j", "weak")):
@@ -1093,7 +1101,7 @@ def test_stage_that_never_comes_is_refused(section):
 
 
 def test_trace_angle_closed_forms():
-    from jaxdem.scene_properties import trace_angle
+    from jaxdem.scene import trace_angle
 
     # Dipping 35 deg towards +x ("right"): the trace descends with x, -35 deg (= 145 deg).
     assert trace_angle(35.0, "right") == pytest.approx(-35.0, abs=1e-12)
@@ -1153,7 +1161,7 @@ def test_vertical_joint_in_the_section_plane_is_refused():
 def test_rounded_coordinates_overlap_within_tolerance_is_accepted():
     # The issue's case: coordinates rounded to 6 decimals make neighbours overlap by
     # about 1e-6 m; that is below OVERLAP_TOLERANCE (1e-5) of a 1 m block: accepted.
-    from jaxdem.scene_checks import OVERLAP_TOLERANCE, overlap_depth
+    from jaxdem.scene import OVERLAP_TOLERANCE, overlap_depth
 
     data = valid_scene_dict()
     data["blocks"][2]["vertices"] = [[1, 1.999999], [2, 1.999999], [2, 3], [1, 3]]

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_plots import make_result
 
 from jaxdem.vtk import write_vtk
-from test_plots import make_result
 
 
 def read_legacy_vtk(path) -> dict:

@@ -21,11 +21,11 @@ import pytest
 from scenes import ROCK, incline_frame, rect_on_slope, slope_base
 
 import jaxdem
-from jaxdem import model as model_mod
 from jaxdem import solver
-from jaxdem.loads import make_loads
+from jaxdem.core import model as model_mod
+from jaxdem.core.loads import make_loads
+from jaxdem.core.status import Status
 from jaxdem.scene import parse_scene
-from jaxdem.status import Status
 
 GAMMA = 39.0  # kN/m3: the symmetric wedge below weighs 58.5 kN/m
 K_BOLT = 1e5  # kN/m
@@ -230,7 +230,7 @@ def _drive(scene, loads_x):
         force[0, 0] = fx
         loads = make_loads(model, force, bolt_active=np.ones(1, bool))
         model, state, info, _ = solver.run_increment(model, state, loads)
-        out.append((Status(int(info["status"])), float(state.u[0, 0]),
+        out.append((Status.of(info["status"]), float(state.u[0, 0]),
                     float(state.bolt_force[0]), int(state.bolt_state[0])))
     return out
 
@@ -300,8 +300,8 @@ def test_key_block_drop_derivatives_match_statics():
 def test_large_joint_slip_is_reported_and_small_is_not():
     from scenes import slide_and_stop
 
-    from jaxdem.cli_summaries import _result_summary
-    from jaxdem.status import LARGE_SLIP
+    from jaxdem.cli._summaries import result_summary
+    from jaxdem.core.status import LARGE_SLIP
 
     # Seed example 1: the block slides 1 m down the slope and comes to rest on a stop.
     r = jaxdem.solve(parse_scene(slide_and_stop(gap=1.0)))
@@ -310,7 +310,7 @@ def test_large_joint_slip_is_reported_and_small_is_not():
     assert slip == pytest.approx(1.0, rel=0.05)
     assert len(r.warnings) == 1 and "joint slip of" in r.warnings[0] and "review" in r.warnings[0]
     assert "blocks 1 and 0" in r.warnings[0] or "blocks 0 and 1" in r.warnings[0]
-    assert "warning: stable, but joint slip of" in _result_summary(r)
+    assert "warning: stable, but joint slip of" in result_summary(r)
     # A block resting on a plane flatter than its friction angle barely moves.
     r = jaxdem.solve(parse_scene(tb_incline_at_rest()))
     assert r.converged and r.stable and not r.warnings

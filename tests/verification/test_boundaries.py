@@ -11,7 +11,7 @@ import pytest
 from scenes import ROCK
 
 import jaxdem
-from jaxdem.laws import equivalent_stiffness, intact_stiffness
+from jaxdem.core.laws import equivalent_stiffness, intact_stiffness
 from jaxdem.scene import parse_scene
 
 

@@ -16,7 +16,7 @@ import pytest
 from scenes import block_on_incline
 
 import jaxdem
-from jaxdem.laws import equivalent_stiffness, intact_stiffness
+from jaxdem.core.laws import equivalent_stiffness, intact_stiffness
 from jaxdem.scene import parse_scene
 
 

@@ -1,0 +1,355 @@
+"""The subcommands of ``jaxdem`` (``demo``, ``run``, ``check``, ``sweep``, ``fos``,
+``back-analyse``) and the steps they share: load the scene with its ``--set`` overrides,
+refuse an unusable ``--out`` before any computation, solve, write JSON and figures, and
+turn the outcome into an exit status (``EXIT_OK``, ``EXIT_INVALID_INPUT``,
+``EXIT_NOT_CONVERGED``).
+
+Each ``cmd_*`` takes the parsed ``argparse.Namespace`` (from :mod:`jaxdem.cli._parser`) and
+returns the exit status; invalid input raises ``InputError`` or ``SceneError`` for
+:func:`jaxdem.cli.main` to print as one line. JAX, the solver and matplotlib are imported
+inside the commands, so that ``jaxdem --help`` answers at once.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from jaxdem.cli._progress import ProgressBar, SampleBar
+from jaxdem.cli._summaries import (
+    back_analysis_summary,
+    plural,
+    print_iteration,
+    result_summary,
+    scene_name,
+    scene_summary,
+    stage_count,
+    sweep_summary,
+)
+
+EXIT_OK = 0
+EXIT_INVALID_INPUT = 2
+EXIT_NOT_CONVERGED = 3
+
+#: Statuses that count as an answer (exit 0); every other status exits 3.
+SOLVED_STATUSES = ("converged", "mechanism")
+
+MAX_TRIALS = 1024
+"""Most ``fos --trials`` (factors solved together in one batch per round)."""
+MAX_FIT_ITERATIONS = 10_000
+"""Most ``back-analyse --max-iterations`` (each iteration solves the scene at least once)."""
+MAX_FIT_RESTARTS = 100
+"""Most ``back-analyse --restarts`` (each restart is a whole local fit)."""
+
+
+class InputError(Exception):
+    """Invalid input found by the command line itself (exit status 2)."""
+
+
+# Wall-clock marks of a command's phases (time.time(), s), written as JSON to
+# $JAXDEM_PHASES when that is set (benchmarks/bench_time_to_answer.py reads them).
+_PHASES: dict[str, float] = {}
+
+
+def _mark(name: str) -> None:
+    import time
+
+    _PHASES[name] = time.time()
+
+
+def _write_phases(extra: dict[str, Any] | None = None) -> None:
+    target = os.environ.get("JAXDEM_PHASES")
+    if target:
+        Path(target).write_text(json.dumps({**_PHASES, **(extra or {})}))
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """Solve the bundled demo scene ``jaxdem/data/demo.toml``."""
+    from importlib import resources
+
+    resource = resources.files("jaxdem").joinpath("data", "demo.toml")
+    if not resource.is_file():
+        raise InputError("the bundled demo scene jaxdem/data/demo.toml is missing")
+    with resources.as_file(resource) as path:
+        return _solve_and_report(path, Path(args.out), overrides={}, vtk=args.vtk,
+                                 figures=not args.no_figures)
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """Solve a scene file with ``--set`` overrides and write results and figures."""
+    path = Path(args.scene)
+    out = Path(args.out) if args.out else Path("out") / path.stem
+    overrides = _parse_overrides([item for group in args.set or [] for item in group])
+    return _solve_and_report(path, out, overrides=overrides, vtk=args.vtk,
+                             figures=not args.no_figures)
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    """Validate a scene file and draw its blocks to ``DIR/check.png``."""
+    from jaxdem.plots import plot_scene_check
+
+    path = Path(args.scene)
+    out = Path(args.out) if args.out else Path("out") / path.stem
+    scene = _load(path, overrides={})
+    _check_out(out)
+    print(f"OK: {scene_summary(scene)}")
+    figure = plot_scene_check(scene, out / "check.png")
+    print(f"wrote {figure}")
+    return EXIT_OK
+
+
+def cmd_back_analyse(args: argparse.Namespace) -> int:
+    """Fit scene parameters to measured monitor values; write back_analysis.json and figures."""
+    path = Path(args.scene)
+    out = Path(args.out)
+    overrides = _parse_overrides([item for group in args.set or [] for item in group])
+    bounds = _parse_bounds([item for group in args.bounds or [] for item in group])
+    if not 0 <= args.max_iterations <= MAX_FIT_ITERATIONS:
+        what = ">= 0" if args.max_iterations < 0 else f"<= {MAX_FIT_ITERATIONS:,}"
+        raise InputError(f"--max-iterations must be {what} (got {args.max_iterations})")
+    if args.restarts is not None and not 0 <= args.restarts <= MAX_FIT_RESTARTS:
+        what = ">= 0" if args.restarts < 0 else f"<= {MAX_FIT_RESTARTS}"
+        raise InputError(f"--restarts must be {what} (got {args.restarts})")
+    scene = _load(path, overrides)
+    _check_out(out)
+
+    from inverse import back_analyse, read_observations
+    from inverse.backanalysis import NO_EQUILIBRIUM_AT_START
+    from inverse.plots import write_figures
+    from jaxdem.scene import SceneError
+
+    observations = read_observations(args.observed)
+    print(f"{scene_name(scene, path, overrides)}: {scene_summary(scene)}")
+    print(f"fitting {', '.join(args.fit)} to {len(observations)} observations "
+          f"({args.optimizer}, at most {args.max_iterations} iterations)")
+    try:
+        result = back_analyse(
+            scene,
+            observations,
+            args.fit,
+            bounds=bounds,
+            optimizer=args.optimizer,
+            max_iterations=args.max_iterations,
+            **({} if args.restarts is None else {"restarts": args.restarts}),
+            progress=print_iteration,
+        )
+    except SceneError:
+        raise
+    except Exception as err:  # noqa: BLE001 - exit codes are 0, 2 and 3 only
+        return _failed("back-analyse", err)
+    written = [_write_json(result.to_dict(), out / "back_analysis.json")]
+    if result.status != NO_EQUILIBRIUM_AT_START:
+        written += write_figures(result, out)
+    print(back_analysis_summary(result))
+    print("wrote " + ", ".join(str(p) for p in written))
+    return EXIT_NOT_CONVERGED if result.status == NO_EQUILIBRIUM_AT_START else EXIT_OK
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    """Solve a scene over sampled parameters (batched); write sweep.csv, sweep.json, tornado.png."""
+    path = Path(args.scene)
+    out = Path(args.out)
+    overrides = _parse_overrides([item for group in args.set or [] for item in group])
+    if args.chunk is not None and args.chunk < 1:
+        raise InputError(f"--chunk must be >= 1 (got {args.chunk})")
+    if args.seed < 0:
+        raise InputError(f"--seed must be >= 0 (got {args.seed})")
+    scene = _load(path, overrides)
+    _check_out(out)
+
+    from jaxdem.plots import plot_tornado
+    from jaxdem.sweep import Variable, draw, sweep
+
+    variables = [Variable.parse(v) for group in args.vary for v in group]
+    method = args.method or ("grid" if all(v.kind == "range" for v in variables) else "lhs")
+    n = draw(variables, args.samples, method, args.seed).shape[0]
+    p = len(variables)
+    print(f"{scene_name(scene, path, overrides)}: {scene_summary(scene)}")
+    if method == "grid":
+        how = (f"grid: {args.samples} levels x {plural(p, 'parameter')} = {n:,} solves "
+               "(--samples is the levels per parameter)")
+    else:
+        how = f"{method}: {n:,} samples (seed {args.seed})"
+    print(f"sweep {how}, plus {1 + 2 * p} for the tornado; "
+          + "; ".join(f"{v.path} {v.describe()}" for v in variables), flush=True)
+    bar = SampleBar()
+    from jaxdem.scene import SceneError
+
+    try:
+        with bar:
+            result = sweep(scene, variables, args.samples, method=method, seed=args.seed,
+                           chunk=args.chunk, progress=bar)
+    except SceneError:
+        raise
+    except Exception as err:  # noqa: BLE001 - exit codes are 0, 2 and 3 only
+        return _failed("sweep", err)
+    written = [result.to_csv(out / "sweep.csv"), _write_json(result.to_dict(), out / "sweep.json")]
+    if result.tornado:
+        written.append(plot_tornado(result.tornado, out / "tornado.png"))
+    print(sweep_summary(result))
+    print("wrote " + ", ".join(str(p) for p in written))
+    return EXIT_OK
+
+
+def cmd_fos(args: argparse.Namespace) -> int:
+    """Factor of safety by strength reduction; write fos.json, mechanism.png and fos.png."""
+    path = Path(args.scene)
+    out = Path(args.out)
+    overrides = _parse_overrides([item for group in args.set or [] for item in group])
+    if not 2 <= args.trials <= MAX_TRIALS:
+        raise InputError(f"--trials must be an integer from 2 to {MAX_TRIALS} "
+                         f"(got {args.trials})")
+    if not 0 < args.tolerance < float("inf"):
+        raise InputError(f"--tolerance must be a number > 0 (got {args.tolerance})")
+    scene = _load(path, overrides)
+    _check_out(out)
+
+    from jaxdem.fos import factor_of_safety, write_outputs
+
+    def report(r: dict[str, Any]) -> None:
+        trials = ", ".join(f"{f:.4g} {s if s != 'converged' else 'stable'}"
+                           for f, s in zip(r["factors"], r["outcomes"], strict=True))
+        lo, hi = (("-" if x is None else f"{x:.5g}") for x in r["bracket"])
+        print(f"round {r['round']}: {trials} -> bracket [{lo}, {hi}]", file=sys.stderr,
+              flush=True)
+
+    print(f"{scene_name(scene, path, overrides)}: {scene_summary(scene)}")
+    result = factor_of_safety(scene, intact=args.intact, tensile=args.tensile,
+                              trials=args.trials, rtol=args.tolerance, progress=report)
+    written = write_outputs(result, scene, out)
+    print(result.message)
+    if result.mechanism is not None:
+        m = result.mechanism
+        moving = ", ".join(str(i) for i in m["moving_blocks"][:20])
+        print(f"at F = {m['factor']:.5g}: {m['status']}"
+              + (f", moving blocks: {moving}" if moving else ""))
+    print("wrote " + ", ".join(str(p) for p in written))
+    return EXIT_OK if result.decided else EXIT_NOT_CONVERGED
+
+
+def _prepare_figures() -> None:
+    """Import matplotlib and load its fonts (while the solver's programs compile)."""
+    from jaxdem.plots import warm_up
+
+    warm_up()
+
+
+def _solve_and_report(path: Path, out: Path, overrides: dict[str, Any],
+                      vtk: bool = False, figures: bool = True) -> int:
+    _mark("start")
+    scene = _load(path, overrides)
+    _check_out(out)
+    print(f"{scene_name(scene, path, overrides)}: {scene_summary(scene)}")
+    _mark("loaded")
+
+    from jaxdem import solver
+    from jaxdem.core import compile_cache
+
+    if figures:
+        compile_cache.while_compiling(_prepare_figures)
+    _mark("imported")
+    bar = ProgressBar(n_stages=stage_count(scene))
+    with bar:
+        result = solver.solve(scene, progress=bar)
+    _mark("solved")
+
+    data = result.to_dict()
+    if overrides:
+        # result.json keeps the file's scene name and says what --set changed; the
+        # figures' titles carry both.
+        data["overrides"] = dict(overrides)
+        result = dataclasses.replace(result, scene=scene_name(scene, path, overrides))
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "result.json").write_text(json.dumps(data, indent=2))
+    # The answer first: the summary and result.json do not wait for the figures.
+    print(result_summary(result), flush=True)
+    _mark("answered")
+    written = [out / "result.json"]
+    if figures:
+        from jaxdem.plots import write_figures
+
+        written += write_figures(result, out)
+    _mark("figures")
+    if vtk:
+        from jaxdem.vtk import write_vtk
+
+        written += write_vtk(result, out)
+
+    print("wrote " + ", ".join(str(p) for p in written))
+    _mark("end")
+    _write_phases({"timing": dict(getattr(result, "timing", None) or {}),
+                   "increment": dict(getattr(solver, "COMPILE_TIMES", {}))})
+    return EXIT_OK if result.status in SOLVED_STATUSES else EXIT_NOT_CONVERGED
+
+
+def _load(path: Path, overrides: dict[str, Any]) -> Any:
+    """Load and validate a scene; every problem (unreadable file included) is a SceneError."""
+    from jaxdem.scene import load_scene
+
+    return load_scene(path, set=overrides or None)
+
+
+def _check_out(out: Path) -> None:
+    """Refuse, before any computation, an output folder that cannot be made or written:
+    a file in its place or on its path, or a folder without write permission."""
+    for folder in (out, *out.parents):
+        if folder.exists() or folder.is_symlink():
+            if not folder.is_dir():
+                raise InputError(f"--out {out}: {folder} exists and is not a folder")
+            if not os.access(folder, os.W_OK | os.X_OK):
+                raise InputError(f"--out {out}: cannot write in {folder} (permission denied)")
+            return
+
+
+def _parse_overrides(items: Sequence[str]) -> dict[str, Any]:
+    """``--set PATH=VALUE`` arguments to a dict; bad syntax raises SceneError (exit 2)."""
+    if not items:
+        return {}
+    from jaxdem.scene import parse_set_arguments
+
+    return dict(parse_set_arguments(list(items)))
+
+
+def _parse_bounds(items: Sequence[str]) -> dict[str, tuple[float, float]]:
+    """``--bounds PATH=LO:HI`` arguments to ``{PATH: (LO, HI)}``; bad syntax raises
+    SceneError (exit 2). Whether LO < HI and the path is fitted is checked by the fit."""
+    from jaxdem.scene import SceneError
+
+    out: dict[str, tuple[float, float]] = {}
+    for item in items:
+        path, equals, text = item.partition("=")
+        lo_text, colon, hi_text = text.partition(":")
+        path = path.strip()
+        if not equals or not colon or not path:
+            raise SceneError("--bounds", f"expected PATH=LO:HI, e.g. joints.set1.kn=1e5:1e8 "
+                                         f"(got {item!r})")
+        try:
+            lo, hi = float(lo_text), float(hi_text)
+        except ValueError:
+            raise SceneError("--bounds", f"bounds of {path} must be numbers LO:HI "
+                                         f"(got {text!r})") from None
+        out[path] = (lo, hi)
+    return out
+
+
+def _write_json(data: dict[str, Any], path: Path) -> Path:
+    from jaxdem.results import write_json
+
+    return write_json(data, path)
+
+
+def _failed(command: str, err: Exception) -> int:
+    """A solve that raised inside ``command``: one line on stderr, exit status 3."""
+    lines = str(err).strip().splitlines() or [""]
+    print_error(f"{command}: the solver failed ({type(err).__name__}: {lines[-1]})")
+    return EXIT_NOT_CONVERGED
+
+
+def print_error(message: str) -> None:
+    print(f"error: {message}", file=sys.stderr)

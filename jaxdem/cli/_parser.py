@@ -1,0 +1,208 @@
+"""The argument parser of ``jaxdem``: the subcommands, their options and defaults, and
+usage errors as one line (``_Parser``) instead of argparse's usage block.
+
+Builds an ``argparse.ArgumentParser`` whose subcommands dispatch (``func``) to the
+``cmd_*`` functions of :mod:`jaxdem.cli._commands`; :func:`jaxdem.cli.main` parses with it.
+Reads the version from ``jaxdem/__init__.py`` as text, without importing JAX.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+from pathlib import Path
+
+from jaxdem.cli._commands import (
+    InputError,
+    cmd_back_analyse,
+    cmd_check,
+    cmd_demo,
+    cmd_fos,
+    cmd_run,
+    cmd_sweep,
+)
+
+DEFAULT_DEMO_OUT = "jaxdem-demo"
+DEFAULT_BACK_ANALYSIS_OUT = "jaxdem-back-analysis"
+DEFAULT_SWEEP_OUT = "jaxdem-sweep"
+DEFAULT_FOS_OUT = "jaxdem-fos"
+
+
+def _version() -> str:
+    """The package version, without importing JAX (``jaxdem --version`` answers at once)."""
+    text = (Path(__file__).resolve().parents[1] / "__init__.py").read_text()
+    found = re.search(r'^__version__ = "([^"]+)"', text, re.M)
+    return found.group(1) if found else "unknown"
+
+
+class _Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose usage errors are one line (``--samples: invalid int value:
+    'x'``), printed by :func:`main` like every other invalid input, instead of the usage."""
+
+    def error(self, message: str):  # type: ignore[override]
+        named = re.match(r"argument ([^:]+?): (.*)", message)
+        if named:
+            option = named.group(1).split("/")[-1]  # "-h/--help" -> "--help"
+            raise InputError(f"{option}: {named.group(2)} (see {self.prog} --help)")
+        raise InputError(f"{self.prog}: {message} (see {self.prog} --help)")
+
+
+def _add_set_option(parser: argparse.ArgumentParser, help: str) -> None:
+    """``--set PATH=VALUE ...`` (repeatable): scene parameter overrides."""
+    parser.add_argument("--set", action="append", nargs="+", metavar="PATH=VALUE", help=help)
+
+
+def _add_figures_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--no-figures", action="store_true",
+                        help="write result.json only, no figures (faster)")
+
+
+def _add_vtk_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--vtk", action="store_true",
+                        help="also write blocks.vtk (polygons with displacement, stress, "
+                        "state) and contacts.vtk (points with forces) for ParaView")
+
+
+def make_parser() -> argparse.ArgumentParser:
+    parser = _Parser(
+        prog="jaxdem",
+        description="2D block-spring discrete element analysis of tunnels in jointed rock.",
+        epilog="Exit status: 0 solved (stable or not), 2 invalid input, 3 solver did not converge.",
+    )
+    parser.add_argument("--version", action="version", version=f"jaxdem {_version()}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    demo = sub.add_parser("demo", help="solve the bundled demo scene")
+    demo.add_argument(
+        "--out",
+        default=DEFAULT_DEMO_OUT,
+        metavar="DIR",
+        help=f"output folder (default {DEFAULT_DEMO_OUT})",
+    )
+    _add_vtk_option(demo)
+    _add_figures_option(demo)
+    demo.set_defaults(func=cmd_demo)
+
+    run = sub.add_parser("run", help="solve a scene, write result.json and figures")
+    run.add_argument("scene", metavar="SCENE.toml")
+    run.add_argument("--out", metavar="DIR",
+                     help="output folder (default out/<file name without .toml>)")
+    _add_set_option(run, "override scene parameters, e.g. --set joints.set1.kn=2e6 "
+                    "in_situ.k0=1.5 (repeatable)")
+    _add_vtk_option(run)
+    _add_figures_option(run)
+    run.set_defaults(func=cmd_run)
+
+    check = sub.add_parser("check", help="validate a scene and draw its blocks")
+    check.add_argument("scene", metavar="SCENE.toml")
+    check.add_argument("--out", metavar="DIR",
+                       help="output folder (default out/<file name without .toml>)")
+    check.set_defaults(func=cmd_check)
+
+    back = sub.add_parser(
+        "back-analyse",
+        help="fit scene parameters to measured monitor values",
+        description="Fit scene parameters to measured monitor values (Gauss-Newton / "
+        "Levenberg-Marquardt on the monitors' Jacobian by default); report estimates, "
+        "Gauss-Newton standard deviations and which "
+        "parameters the measurements determine.",
+    )
+    back.add_argument("scene", metavar="SCENE.toml")
+    back.add_argument(
+        "--observed",
+        required=True,
+        metavar="FILE.csv",
+        help="measurements: columns monitor,value,std (m) and optionally stage, component "
+        "(ux|uy for point monitors); blank std: 5%% of |value|, at least 0.1 mm",
+    )
+    back.add_argument(
+        "--fit",
+        action="append",
+        required=True,
+        metavar="PATH",
+        help="parameter to fit, e.g. joints.set1.kn (repeatable)",
+    )
+    back.add_argument(
+        "--bounds",
+        action="append",
+        nargs="+",
+        metavar="PATH=LO:HI",
+        help="bounds of a fitted parameter (default theta0/100 to theta0*100 when positive)",
+    )
+    back.add_argument("--optimizer", choices=("gauss-newton", "lbfgs", "adam"),
+                      default="gauss-newton", help="gauss-newton (default: Levenberg-Marquardt "
+                      "on the monitors' Jacobian, fewest solves), lbfgs or adam")
+    back.add_argument("--max-iterations", type=int, default=50, metavar="N",
+                      help="most optimiser iterations of each local fit (default 50)")
+    # No default here: back_analyse's (inverse.fit.RESTARTS) holds, and --help stays
+    # free of JAX imports.
+    back.add_argument("--restarts", type=int, metavar="N",
+                      help="most restarts from other points (the centre of the bounds, then "
+                      "Halton points) when a fit's misfit is more than the stds explain "
+                      "(chi-square test at 99.9%%): a local minimum (default 4; 0: none)")
+    back.add_argument(
+        "--out",
+        default=DEFAULT_BACK_ANALYSIS_OUT,
+        metavar="DIR",
+        help=f"output folder (default {DEFAULT_BACK_ANALYSIS_OUT})",
+    )
+    _add_set_option(back, "override scene parameters before fitting (repeatable)")
+    back.set_defaults(func=cmd_back_analyse)
+
+    sw = sub.add_parser(
+        "sweep",
+        help="solve a scene over sampled parameters (batched)",
+        description="Solve a scene over a grid, Latin hypercube or Monte Carlo sample of its "
+        "parameters, all samples in batches (vmap); write sweep.csv (one row per sample), "
+        "sweep.json (probability of instability, tornado) and tornado.png.",
+    )
+    sw.add_argument("scene", metavar="SCENE.toml")
+    sw.add_argument(
+        "--vary",
+        action="append",
+        nargs="+",
+        required=True,
+        metavar="PATH=SPEC",
+        help="a parameter and its range or distribution: PATH=LOW:HIGH[:log], "
+        "PATH=uniform:LOW:HIGH, PATH=normal:MEAN:SD, PATH=lognormal:MEAN:SD, "
+        "PATH=truncnormal:MEAN:SD:LOW:HIGH (repeatable)",
+    )
+    sw.add_argument("--samples", type=int, required=True, metavar="N",
+                    help="grid: levels per parameter (N^p solves for p parameters); lhs, "
+                    "mc: the number of draws. The count of solves is printed before any "
+                    "starts")
+    sw.add_argument("--method", choices=("grid", "lhs", "mc"), default=None,
+                    help="grid, lhs (Latin hypercube) or mc (Monte Carlo); default grid when "
+                    "every parameter is a range, else lhs")
+    sw.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    sw.add_argument("--chunk", type=int, default=None, metavar="C",
+                    help="samples per batch (default: on a CPU a few, what stays in cache; "
+                    "on a GPU as many as fit in memory)")
+    sw.add_argument("--out", default=DEFAULT_SWEEP_OUT, metavar="DIR",
+                    help=f"output folder (default {DEFAULT_SWEEP_OUT})")
+    _add_set_option(sw, "override scene parameters for every sample (repeatable)")
+    sw.set_defaults(func=cmd_sweep)
+
+    fos = sub.add_parser(
+        "fos",
+        help="factor of safety by strength reduction (batched)",
+        description="Divide the joints' tan(phi) and cohesion (with --intact also the intact "
+        "rock's) by trial factors F, solved in batches, and bracket the largest F that is "
+        "still stable; write fos.json, mechanism.png (the solve at the first unstable F) and "
+        "fos.png (the trials). Exit 3 when the unstable end of the bracket is a trial that "
+        "neither converged nor found a mechanism.",
+    )
+    fos.add_argument("scene", metavar="SCENE.toml")
+    fos.add_argument("--out", default=DEFAULT_FOS_OUT, metavar="DIR",
+                     help=f"output folder (default {DEFAULT_FOS_OUT})")
+    fos.add_argument("--intact", action="store_true",
+                     help="also reduce the intact rock's friction and cohesion (materials)")
+    fos.add_argument("--tensile", action="store_true",
+                     help="also divide tensile strengths by F (default: unchanged)")
+    fos.add_argument("--trials", type=int, default=8, metavar="N",
+                     help="factors solved together per round (default 8)")
+    fos.add_argument("--tolerance", type=float, default=0.005, metavar="R",
+                     help="stop when the bracket's relative width is <= R (default 0.005)")
+    _add_set_option(fos, "override scene parameters before the reduction (repeatable)")
+    fos.set_defaults(func=cmd_fos)
+    return parser

@@ -1,0 +1,450 @@
+"""Contact detection: broad phase (candidate pairs) and narrow phase (spring slots).
+
+Broad phase. Axis-aligned boxes grown by the detection margin. Blocks in
+``model.big`` (walls, blocks much larger than the median) are tested against
+every block; the others go into a uniform grid of cells no smaller than the
+largest of them, sorted by cell key, and each block looks at its own and the
+eight neighbouring cells. Capacities (pairs, blocks per cell) are fixed; when
+one is exceeded the ``overflow`` flag is set and the host grows it and
+recompiles (never silent truncation). Small scenes use all pairs.
+
+Narrow phase (vertex-to-edge, per pair (a, b), a < b). Each vertex of one
+block is tested against the edges of the other. A vertex inside the other
+polygon grown by the margin is a spring slot, on the face it is closest to
+(preferring a face anti-parallel to one of its own adjacent faces). The slot
+is part of an edge-to-edge contact when its own adjacent face is
+anti-parallel to that face within ``cos_parallel``: its effective length is
+half the overlap of the two faces, so the two end points of a face-to-face
+contact share Le = |p1 - p2| (paper eq. 8). Otherwise it is a corner-to-edge
+contact whose effective length is ``corner_share`` (default 0.1) times the
+shorter of the two faces meeting at the corner, provided the corner lies
+inside the face's span (a corner at the end of a face, where faces meet end
+to end at a node, bears on nothing): a corner bears on a short
+length of the face, and the choice only sets the corner spring's stiffness,
+never the strength check, which is per point. Where a vertex of b sits at the
+contact point of a vertex of a (within that point's overlap), the two slots are
+one point seen from both sides, and each takes half of it (``halved``).
+
+The choices (which face, which own face, which vertex is near) are made on
+values; the geometry that follows from them (:func:`_slot_geometry`) is
+differentiable, and :func:`slot_geometry` evaluates it for any subset of the
+slots (the sensitivities differentiate the active ones alone).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from jaxdem.core.state import Model, State
+
+
+def _take(x, idx, axis):
+    """``jnp.take_along_axis`` with indices known to be in range (no fill, no mask).
+
+    Every index here (a chosen face, the next or previous vertex) is in range by
+    construction; the default mode's bounds test and fill would be evaluated
+    for each element, and again for each parameter's tangent.
+    """
+    return jnp.take_along_axis(x, idx, axis=axis, mode="promise_in_bounds")
+
+
+def _dot(x, y):
+    """x . y over the last axis of 2-vectors, as two products and a sum.
+
+    Not ``jnp.sum(x * y, axis=-1)``: XLA's CPU reduction over an axis of 2
+    costs several times the elementwise form, and its forward-mode tangents,
+    batched over p parameters, add one such reduction per parameter.
+    """
+    return x[..., 0] * y[..., 0] + x[..., 1] * y[..., 1]
+
+
+def edges(verts: jax.Array, nv: jax.Array):
+    """Edge start points, end points, lengths, unit tangents and outward normals.
+
+    Args:
+      verts: (..., V, 2) counter-clockwise vertices (padding repeats vertex 0).
+      nv: (...,) vertex counts.
+    Returns:
+      q0, q1: (..., V, 2); length: (..., V); t, n: (..., V, 2); emask: (..., V).
+      Edge k runs from vertex k to vertex k + 1 (mod nv); padded edges are masked.
+    """
+    V = verts.shape[-2]
+    k = jnp.arange(V)
+    nxt = jnp.where(k + 1 < nv[..., None], k + 1, 0)
+    q1 = _take(verts, nxt[..., None], axis=-2)
+    d = q1 - verts
+    # Padded edges have zero length: take the root of a safe value there, so
+    # that derivatives stay finite (d sqrt(x) is infinite at x = 0).
+    d2 = _dot(d, d)
+    length = jnp.where(d2 > 0, jnp.sqrt(jnp.where(d2 > 0, d2, 1.0)), 0.0)
+    emask = k < nv[..., None]
+    safe = jnp.where(emask & (length > 0), length, 1.0)
+    t = d / safe[..., None]
+    n = jnp.stack([t[..., 1], -t[..., 0]], axis=-1)
+    return verts, q1, length, t, n, emask
+
+
+def bounding_boxes(verts: jax.Array, margin) -> jax.Array:
+    """(N, 4) boxes (xmin, ymin, xmax, ymax), grown by half the margin on each side."""
+    lo = jnp.min(verts, axis=1) - 0.5 * margin
+    hi = jnp.max(verts, axis=1) + 0.5 * margin
+    return jnp.concatenate([lo, hi], axis=-1)
+
+
+def _boxes_overlap(bi, bj):
+    return (
+        (bi[..., 0] <= bj[..., 2])
+        & (bj[..., 0] <= bi[..., 2])
+        & (bi[..., 1] <= bj[..., 3])
+        & (bj[..., 1] <= bi[..., 3])
+    )
+
+
+def broad_phase(model: Model, verts: jax.Array, capacity: int, alive: jax.Array):
+    """Candidate pairs (a < b) whose grown boxes overlap and that can move.
+
+    ``alive`` (N,) masks out excavated blocks and the dead blocks that fill a
+    model up to its size class (``State.alive``: there is no default, since
+    every model past 7 blocks has some).
+
+    Returns:
+      pairs: (capacity, 2) int32, empty entries (N, N), sorted by a * N + b.
+      count: number of candidate pairs found (more than ``capacity``: overflow).
+      cell_full: a grid cell held more than ``model.cell_capacity`` blocks.
+    """
+    N = model.n_blocks
+    box = bounding_boxes(verts, model.margin)
+    ids = jnp.arange(N)
+    movable = model.free & alive
+    if not model.use_cells:
+        ok = _boxes_overlap(box[:, None, :], box[None, :, :])
+        ok = ok & (ids[:, None] < ids[None, :]) & alive[:, None] & alive[None, :]
+        ok = ok & (movable[:, None] | movable[None, :])
+        count = jnp.sum(ok)
+        a, b = jnp.nonzero(ok, size=capacity, fill_value=N)
+        pairs = jnp.stack([a, b], axis=-1).astype(jnp.int32)
+        return pairs, count, jnp.array(False)
+
+    is_big = jnp.zeros(N, bool).at[model.big].set(True) if model.n_big else jnp.zeros(N, bool)
+    # The small live blocks go in cells; dead blocks (excavated, or the padding of a
+    # size class, which copies a block that may be big) neither take room in a cell
+    # nor set its size.
+    hashed = ~is_big & alive
+    # Cells no smaller than the largest small block in any orientation.
+    small_r = jnp.where(hashed, model.radius, 0.0)
+    cell = 2.0 * jnp.max(small_r) + 2.0 * model.margin
+    centre = 0.5 * (box[:, :2] + box[:, 2:])
+    origin = jnp.min(jnp.where(hashed[:, None], centre, jnp.inf), axis=0)
+    cxy = jnp.clip(jnp.floor((centre - origin) / cell).astype(jnp.int32), 0, 2**15 - 2) + 1
+    key = jnp.where(hashed, cxy[:, 0] * 2**16 + cxy[:, 1], -1)
+    order = jnp.argsort(key)
+    skey = key[order]
+    cap = model.cell_capacity
+    offsets = jnp.array([(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1)], jnp.int32)
+    nkey = (cxy[:, None, 0] + offsets[None, :, 0]) * 2**16 + (cxy[:, None, 1] + offsets[None, :, 1])
+    start = jnp.searchsorted(skey, nkey, side="left")
+    stop = jnp.searchsorted(skey, nkey, side="right")
+    cell_full = jnp.any(hashed[:, None] & (stop - start > cap))
+    slot = start[:, :, None] + jnp.arange(cap)[None, None, :]
+    inside = slot < stop[:, :, None]
+    j = order[jnp.clip(slot, 0, N - 1)].reshape(N, -1)
+    ok_cell = inside.reshape(N, -1) & (ids[:, None] < j) & ~is_big[:, None]
+    ok_cell = ok_cell & _boxes_overlap(box[:, None, :], box[j])
+    ok_cell = ok_cell & alive[:, None] & alive[j] & (movable[:, None] | movable[j])
+    a_cell = jnp.broadcast_to(ids[:, None], j.shape)
+    cand_a = [a_cell.reshape(-1)]
+    cand_b = [j.reshape(-1)]
+    cand_ok = [ok_cell.reshape(-1)]
+    if model.n_big:
+        g = model.big
+        ok_big = _boxes_overlap(box[g][:, None, :], box[None, :, :])
+        # Big-big pairs once (from the lower id), big-small pairs from the big side.
+        once = ~is_big[None, :] | (ids[None, :] > g[:, None])
+        ok_big = ok_big & (g[:, None] != ids[None, :]) & once
+        ok_big = ok_big & alive[g][:, None] & alive[None, :]
+        ok_big = ok_big & (movable[g][:, None] | movable[None, :])
+        ga = jnp.broadcast_to(g[:, None], ok_big.shape)
+        gb = jnp.broadcast_to(ids[None, :], ok_big.shape)
+        cand_a.append(jnp.minimum(ga, gb).reshape(-1))
+        cand_b.append(jnp.maximum(ga, gb).reshape(-1))
+        cand_ok.append(ok_big.reshape(-1))
+    a = jnp.concatenate(cand_a)
+    b = jnp.concatenate(cand_b)
+    ok = jnp.concatenate(cand_ok)
+    count = jnp.sum(ok)
+    sel = jnp.nonzero(ok, size=capacity, fill_value=a.shape[0])[0]
+    a = jnp.concatenate([a, jnp.array([N])])[sel]
+    b = jnp.concatenate([b, jnp.array([N])])[sel]
+    # Sort by key so that history matching and output are order-independent.
+    k = a.astype(jnp.int64) * (N + 1) + b
+    o = jnp.argsort(k)
+    pairs = jnp.stack([a[o], b[o]], axis=-1).astype(jnp.int32)
+    return pairs, count, cell_full
+
+
+def block_widths(e_all):
+    """Each block's least width (N,): the depth of its deepest vertex below one of its faces.
+
+    The face and the vertex are found on values (a choice has no derivative);
+    the width is then evaluated at them. ``e_all``: :func:`edges` of every block.
+    """
+    q0, _, _, _, ny, em = e_all
+    sg = jax.lax.stop_gradient
+    depth = -_dot(sg(q0)[:, None, :, :] - sg(q0)[:, :, None, :], sg(ny)[:, :, None, :])
+    depth = jnp.where(em[:, None, :] & em[:, :, None], depth, -jnp.inf)  # (N, face, vertex)
+    deepest = jnp.argmax(depth, axis=-1)  # (N, face)
+    thin = jnp.argmin(jnp.where(em, jnp.max(depth, axis=-1), jnp.inf), axis=-1)  # (N,)
+    pick = lambda x, i: _take(x, i[:, None, None], axis=1)[:, 0]  # noqa: E731
+    v_deep = _take(deepest, thin[:, None], axis=1)[:, 0]
+    return -_dot(pick(q0, v_deep) - pick(q0, thin), pick(ny, thin))
+
+
+def _slot_geometry(model: Model, xv, x_next, x_prev, cx, cy, q, n, t, L_e, l_out, l_in, po,
+                   pi, inside=None):
+    """The differentiable part of slots whose face (and own face) are chosen.
+
+    A vertex xv of block X (its neighbours x_next, x_prev; its outgoing and
+    incoming faces' lengths l_out, l_in) bearing on the face of Y that starts at
+    q (normal n, tangent t, length L_e); po, pi: X's outgoing or incoming face
+    is anti-parallel to it (edge-to-edge). ``inside``: the vertex is inside
+    the face's span (None: from the values here). Any shapes that broadcast;
+    :func:`_vertex_edge` calls it per pair, :func:`slot_geometry` per slot.
+    Returns gap, s_e (the vertex's position along the face), share (before
+    halving), h_x, h_y, far_gap and far_point.
+    """
+    gap = _dot(xv - q, n)
+    s_e = _dot(xv - q, t)
+    # Overlap of X's anti-parallel face with the contacted face, along that face.
+    other = jnp.where(po[..., None], x_next, x_prev)
+    s0 = s_e
+    s1 = _dot(other - q, t)
+    lo = jnp.clip(jnp.minimum(s0, s1), 0.0, L_e)
+    hi = jnp.clip(jnp.maximum(s0, s1), 0.0, L_e)
+    overlap = hi - lo
+    # Gap at the far end of the overlap (linear along the faces): faces within
+    # 2 degrees of parallel can still be a sliver's width apart there.
+    d1 = _dot(other - q, n)
+    s_far = jnp.where(jnp.abs(lo - s0) > jnp.abs(hi - s0), lo, hi)
+    run = jnp.where(jnp.abs(s1 - s0) > 0, s1 - s0, 1.0)
+    far_gap = gap + (d1 - gap) * (s_far - s0) / run
+    corner = model.corner_share * jnp.minimum(l_out, l_in)
+    parallel = po | pi
+    # A corner bears on a face only inside its span: at the end of a face
+    # (faces meeting end to end at a mesh node) it touches without bearing.
+    if inside is None:
+        inside = (s_e > model.span_tol) & (s_e < L_e - model.span_tol)
+    share = jnp.where(parallel, 0.5 * overlap, jnp.where(inside, corner, 0.0))
+    # Each centroid's distance to its own side of an edge-to-edge contact: X's to its
+    # own face (through its vertex), Y's to its face. Measured both to Y's face, an
+    # overlap shortened X's h (and stiffened its spring) but not Y's, and a contact seen
+    # from both blocks (coincident corners) got two different springs. A corner has
+    # no face of its own on the contact: its h is to Y's face.
+    h_x = jnp.maximum(_dot(cx - jnp.where(parallel[..., None], xv, q), n), 0.0)
+    h_y = jnp.maximum(_dot(q - cy, n), 0.0)
+    return dict(gap=gap, s_e=s_e, share=share, h_x=h_x, h_y=h_y,
+                far_gap=jnp.where(parallel, far_gap, gap),
+                far_point=xv + jnp.where(parallel, s_far - s0, 0.0)[..., None] * t)
+
+
+def _slot_finish(model: Model, g, halved, X, Y, widths):
+    """share halved where both sides see the point; h_a, h_b with their floors.
+
+    A centroid on or behind the contact line (a corner reaching round the
+    end of a face) would give h = 0 and, against a rigid wall, an infinite
+    spring: h is at least a tenth of the block's size, its radius or, for an
+    elongated block, its least width (a 10 m x 0.01 m sliver lying on its
+    face has h = 5 mm, not 0.5 m: a floor on the radius would make it 100
+    times too soft).
+    """
+    return dict(share=jnp.where(halved, 0.5, 1.0) * g["share"],
+                h_a=jnp.maximum(g["h_x"], 0.1 * jnp.minimum(model.radius[X], widths[X])),
+                h_b=jnp.maximum(g["h_y"], 0.1 * jnp.minimum(model.radius[Y], widths[Y])))
+
+
+def _vertex_edge(model: Model, xv, nvx, vmx, cx, ex, ey, cy, width, not_dup):
+    """Slots of the vertices of block X against the edges of block Y, per pair.
+
+    Args:
+      xv: (P, V, 2) vertices of X; nvx: (P,) counts; vmx: (P, V) mask.
+      cx, cy: (P, 2) centroids. ex, ey: edges of X and of Y (output of :func:`edges`).
+      width: (P,) Y's least width (:func:`block_widths`).
+      not_dup: (P, V) bool, False for vertices already counted from the other side.
+    Returns a dict of (P, V) arrays: active, gap (m, negative = overlap), point,
+    normal and tangent of the contacted face, edge index, share (m), h_x, h_y (m),
+    own_edge (X's face anti-parallel to it, or -1), far_gap and far_point.
+    """
+    q0, _, ly, ty, ny, emy = ey
+    V = xv.shape[1]
+    # Which face each vertex bears on, and whether it is near, is decided on
+    # values alone (a choice has no derivative): the O(P V^2) vertex-face
+    # tables are built from stop_gradient copies, and only the chosen face's
+    # gap and position are differentiated, O(P V). Sensitivities (jvp of the
+    # detection, jaxdem.differentiable) then carry no V^2 tangents.
+    sg = jax.lax.stop_gradient
+    rel = sg(xv)[:, :, None, :] - sg(q0)[:, None, :, :]  # (P, V, V_edges, 2)
+    d = _dot(rel, sg(ny)[:, None, :, :])
+    d = jnp.where(emy[:, None, :], d, -jnp.inf)
+    dmax = jnp.max(d, axis=-1)
+    # Adjacent faces of each vertex of X: outgoing (v -> v+1) and incoming (v-1 -> v).
+    _, _, lx, tx, _, _ = ex
+    k = jnp.arange(V)
+    prev = jnp.where(k[None, :] > 0, k[None, :] - 1, nvx[:, None] - 1)
+    nxt = jnp.where(k[None, :] + 1 < nvx[:, None], k[None, :] + 1, 0)
+    t_in = _take(tx, prev[..., None], axis=1)
+    l_in = _take(lx, prev, axis=1)
+    c_out = _dot(sg(tx)[:, :, None, :], sg(ty)[:, None, :, :])  # (P, V, Ve)
+    c_in = _dot(sg(t_in)[:, :, None, :], sg(ty)[:, None, :, :])
+    par_out = c_out < -model.cos_parallel
+    par_in = c_in < -model.cos_parallel
+    # A vertex that overlaps near a corner is on the face anti-parallel to its own.
+    # "Near" is within the margin, but less than half of Y's least width: the
+    # far face of a thin block is never near.
+    window = jnp.minimum(model.margin, 0.5 * sg(width))
+    near_face = d >= dmax[..., None] - window[:, None, None]
+    # Among the near faces anti-parallel to one of the vertex's own, the least
+    # penetrated; without one, the least penetrated face. (A bonus added to d
+    # rounded d away: at a corner of Y where both of X's faces are anti-parallel
+    # to one of Y's, the choice fell to the order of Y's edges, and a mirrored
+    # scene chose the other face.)
+    eligible = near_face & (par_out | par_in)
+    score = jnp.where(jnp.any(eligible, axis=-1, keepdims=True),
+                      jnp.where(eligible, d, -jnp.inf), d)
+    e = jnp.argmax(score, axis=-1).astype(jnp.int32)
+    take = lambda x: _take(x, e[..., None], axis=-1)[..., 0]  # noqa: E731
+    n = _take(ny, e[..., None], axis=1)
+    t = _take(ty, e[..., None], axis=1)
+    q = _take(q0, e[..., None], axis=1)
+    L_e = _take(ly, e, axis=1)
+    po = take(par_out)
+    pi = take(par_in)
+    g = _slot_geometry(model, xv, _take(xv, nxt[..., None], axis=1),
+                       _take(xv, prev[..., None], axis=1), cx[:, None, :], cy[:, None, :], q, n,
+                       t, L_e, lx, l_in, po, pi)
+    # A vertex a little past the end of a face still bears on it: blocks whose
+    # corners coincide (a regular grid) shift by joint shear, and the contact
+    # point must not hop to the other block's vertex and lose its history.
+    s_e = g.pop("s_e")
+    in_span = (s_e >= -model.span_tol) & (s_e <= L_e + model.span_tol)
+    near = vmx & not_dup & (dmax <= model.margin) & in_span
+    # Faces that meet end to end (a diagonal neighbour on a grid) share no
+    # length: no spring.
+    active = near & (g["share"] > 0)
+    own_edge = jnp.where(po, k[None, :], jnp.where(pi, prev, -1))
+    return dict(g, active=active, point=xv, normal=n, tangent=t, edge=e, own_edge=own_edge)
+
+
+def narrow_phase(model: Model, verts, centroid, pairs):
+    """Spring slots of every candidate pair, flattened to S = P * 2 * V.
+
+    Returns a dict of (S, ...) arrays: ``a`` (vertex block), ``b`` (face
+    block), ``active``, ``gap``, ``point``, ``normal``, ``tangent``, ``edge``,
+    ``share`` (effective length of the point, m), ``h_a``, ``h_b`` (distances of
+    the centroids from the contact line, m, eqs. 6-7), ``joint`` (joint id),
+    ``corner`` (a corner-to-edge point, not part of an edge-to-edge contact),
+    ``far_gap`` (m, the gap at the other end of an edge-to-edge overlap) and
+    ``far_point`` (that end; the point itself for a corner); and, for
+    :func:`slot_geometry`, ``own_edge`` (the vertex block's face anti-parallel
+    to the contacted one, or -1) and ``halved`` (both blocks see the point).
+    """
+    N = model.n_blocks
+    P = pairs.shape[0]
+    V = model.n_vertices
+    valid = pairs[:, 0] < N
+    a = jnp.clip(pairs[:, 0], 0, N - 1)
+    b = jnp.clip(pairs[:, 1], 0, N - 1)
+    va, vb = verts[a], verts[b]
+    nva, nvb = model.nv[a], model.nv[b]
+    vma = model.vmask[a] & valid[:, None]
+    vmb = model.vmask[b] & valid[:, None]
+    # Each block's edges and width once, then per pair: not twice per pair (primal
+    # and tangents).
+    e_all = edges(verts, model.nv)
+    widths = block_widths(e_all)
+    ea, eb = (tuple(x[a] for x in e_all), tuple(x[b] for x in e_all))
+    ca, cb = centroid[a], centroid[b]
+    every = jnp.ones((P, V), bool)
+    s0 = _vertex_edge(model, va, nva, vma, ca, ea, eb, cb, widths[b], every)
+    s1 = _vertex_edge(model, vb, nvb, vmb, cb, eb, ea, ca, widths[a], every)
+    # A vertex of b at a contact point of a vertex of a (within that point's
+    # overlap) is the same contact point, seen from both sides: each side's slot
+    # takes half of it. Keeping one side's only (the lower block index's) made
+    # the answer depend on how the blocks are numbered: at a junction of several
+    # blocks the two sides' points can bear on different faces, and a mirrored
+    # scene, numbered otherwise, got other springs (tests/test_metamorphic.py).
+    dv = vb[:, :, None, :] - va[:, None, :, :]  # (P, V of b, V of a)
+    reach = (1.5 * jnp.maximum(jnp.abs(s0["gap"])[:, None, :], jnp.abs(s1["gap"])[:, :, None])
+             + model.span_tol)
+    same = ((_dot(dv, dv) <= reach**2) & s0["active"][:, None, :]
+            & s1["active"][:, :, None])
+    s0["halved"] = jnp.any(same, axis=1)
+    s1["halved"] = jnp.any(same, axis=2)
+    out = {k: jnp.stack([s0[k], s1[k]], axis=1) for k in s0}
+    A = jnp.stack([jnp.broadcast_to(a[:, None], (P, V)), jnp.broadcast_to(b[:, None], (P, V))], 1)
+    B = jnp.stack([jnp.broadcast_to(b[:, None], (P, V)), jnp.broadcast_to(a[:, None], (P, V))], 1)
+    # Joint of the slot: that of the contacted face, else of the own face, else the default.
+    j_face = model.edge_joint[B, out["edge"]]
+    j_own = jnp.where(out["own_edge"] >= 0,
+                      model.edge_joint[A, jnp.maximum(out["own_edge"], 0)], -1)
+    default = model.joint_kn.shape[0] - 1
+    joint = jnp.where(j_face >= 0, j_face, jnp.where(j_own >= 0, j_own, default))
+    S = P * 2 * V
+    flat = lambda x: x.reshape((S,) + x.shape[3:])  # noqa: E731
+    res = {k: flat(v) for k, v in out.items()}
+    res.update(_slot_finish(model, res, res["halved"], flat(A), flat(B), widths))
+    del res["h_x"], res["h_y"]
+    res.update(a=flat(A), b=flat(B), joint=flat(joint), corner=res["own_edge"] < 0)
+    return res
+
+
+def slot_geometry(model: Model, verts, centroid, slots: dict) -> dict:
+    """The differentiable fields of given slots (any subset, in any order) of :func:`narrow_phase`.
+
+    ``slots`` holds each slot's choices as :func:`narrow_phase` made them: ``a``,
+    ``b``, ``edge``, ``own_edge``, ``halved`` and ``vertex`` (the vertex's index in
+    block a). Returns ``gap``, ``point``, ``normal``, ``tangent``, ``share``,
+    ``h_a``, ``h_b``, ``far_gap`` and ``far_point`` evaluated at ``verts`` and
+    ``centroid``: the same values as :func:`narrow_phase` where the slot is
+    active (``inside`` is then implied), and their derivatives through the same
+    expressions. The sensitivities differentiate the active slots alone.
+    """
+    X, Y, k, e, own = slots["a"], slots["b"], slots["vertex"], slots["edge"], slots["own_edge"]
+    e_all = edges(verts, model.nv)
+    q0, _, length, t_all, n_all, _ = e_all
+    nv = model.nv[X]
+    prev = jnp.where(k > 0, k - 1, nv - 1)
+    nxt = jnp.where(k + 1 < nv, k + 1, 0)
+    xv = verts[X, k]
+    n, t = n_all[Y, e], t_all[Y, e]
+    g = _slot_geometry(model, xv, verts[X, nxt], verts[X, prev], centroid[X], centroid[Y],
+                       q0[Y, e], n, t, length[Y, e], length[X, k], length[X, prev], own == k,
+                       own == prev, inside=jnp.ones(k.shape, bool))
+    g.pop("s_e")
+    g.update(_slot_finish(model, g, slots["halved"], X, Y, block_widths(e_all)))
+    del g["h_x"], g["h_y"]
+    return dict(g, point=xv, normal=n, tangent=t)
+
+
+def remap_history(state: State, new_pairs: jax.Array, n_blocks: int):
+    """Carry each slot's history (forces, failure, face) to the new pair list.
+
+    Slots are matched by their stable key (pair, side, vertex). Returns the old
+    ``fs``, ``fn``, ``fn0``, ``failed``, ``edge``, ``present`` and ``cstate`` arrays laid out
+    along ``new_pairs`` (empty where the pair is new).
+    """
+    N1 = n_blocks + 1
+    okey = state.pairs[:, 0].astype(jnp.int64) * N1 + state.pairs[:, 1]
+    nkey = new_pairs[:, 0].astype(jnp.int64) * N1 + new_pairs[:, 1]
+    order = jnp.argsort(okey)
+    sk = okey[order]
+    pos = jnp.clip(jnp.searchsorted(sk, nkey), 0, sk.shape[0] - 1)
+    hit = (sk[pos] == nkey) & (new_pairs[:, 0] < n_blocks)
+    src = order[pos]
+    pick = lambda x, empty: jnp.where(  # noqa: E731
+        hit[:, None, None], x[src], jnp.asarray(empty, x.dtype))
+    return dict(
+        fs=pick(state.fs, 0), fn=pick(state.fn, 0), fn0=pick(state.fn0, 0),
+        failed=pick(state.failed, False),
+        edge=pick(state.edge, -1),
+        present=pick(state.present, False), cstate=pick(state.cstate, 0),
+    )

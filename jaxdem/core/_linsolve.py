@@ -1,0 +1,289 @@
+"""Linear solves of the Newton iteration: (K_t + eps M) ddu = R.
+
+Owns the three paths behind :func:`linear_solve`, chosen by
+``model.linear_solver`` (static): "dense" (LU of the assembled matrix,
+:func:`solve_dense`), "sparse" (SciPy's SuperLU on the host through a
+callback, :func:`_solve_sparse`) and "cg" (matrix-free preconditioned
+conjugate gradients, :func:`solve_cg`); and the assembly they share
+(:func:`stiffness_blocks`, :func:`assemble_dense`, :func:`host_matrix`).
+
+Data flow: takes the rank-one terms of :mod:`jaxdem.core._springs` and the
+gather/scatter of :mod:`jaxdem.core.kinematics`; used by the Newton iteration
+(:mod:`jaxdem.core._substep`) and, for its assembly, by the sensitivity solve
+(:mod:`jaxdem.core.sensitivities`).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxdem.core._springs import Sub, n_bolt_terms
+from jaxdem.core.kinematics import gather_pairs, scatter_pairs
+from jaxdem.core.state import Model
+
+
+def linear_solve(model: Model, sub: Sub, terms, R, rtol=None, active=True, symmetric=True):
+    """(K_t + eps M)^-1 R (N, D) by the model's linear solver (``model.linear_solver``).
+
+    ``terms`` holds the rank-one terms of K_t: (a, b, B, k) for "cg", which
+    takes a symmetric matrix (:func:`jaxdem.core._springs.stiffness_terms`), and
+    (a, b, L, Rt, k) for the direct paths, unsymmetric where the slip coupling
+    is on (:func:`jaxdem.core._springs.with_slip_coupling`). ``rtol`` is the
+    relative residual at which CG stops (:func:`solve_cg`); ``active`` and
+    ``symmetric`` (traced bools) are for the sparse path (:func:`_solve_sparse`).
+    The choice is static: only the chosen path is traced.
+    """
+    if model.linear_solver == "cg":
+        return solve_cg(model, sub, terms, R, rtol)
+    if model.linear_solver == "sparse":
+        return _solve_sparse(model, sub, terms, R, active, symmetric)
+    return solve_dense(model, sub, terms, R)
+
+
+def stiffness_blocks(model: Model, sub: Sub, a, b, L, Rt, k, diag):
+    """sum_m k_m L_m R_m^T + blockdiag(Kc) + diag(diag) as (D, D) blocks: (rows, cols, blocks).
+
+    Block (rows[i], cols[i]) of the (N, N) block matrix gets ``blocks[i]``
+    (summed where several land on one: :func:`assemble_dense` scatters them,
+    :func:`host_matrix` hands them to SciPy). L and Rt (M, 2 D) are the left
+    and right rows of each term over the DOFs of its blocks (a, b); L = Rt for
+    the symmetric iteration matrix. The terms start with whole groups of
+    spring slots (P pairs x 2 sides x V vertices, in the order of
+    ``sub.geo``) and end with the bolts. The 2 V slots of a pair share its two
+    blocks, so they are summed into one (2 D, 2 D) block per pair first (a
+    dense contraction): 2 V times fewer blocks than one per slot.
+    """
+    N, D = model.n_blocks, model.ndof
+    S = sub.geo["a"].shape[0]
+    V = model.n_vertices
+    P = S // (2 * V)
+    T = (k.shape[0] - n_bolt_terms(model)) // S
+
+    def by_pair(x):
+        # (T S, 2 D) rows -> (T, P, 2 V, 2 D), ordered (first block, second block) of
+        # the pair: side 1 has its vertex block second, so its halves swap.
+        x = x[:T * S].reshape(T, P, 2, V, 2 * D)
+        swapped = jnp.concatenate([x[..., D:], x[..., :D]], axis=-1)
+        return jnp.concatenate([x[:, :, :1], swapped[:, :, 1:]], axis=2).reshape(
+            T, P, 2 * V, 2 * D)
+
+    # Sum over the slots of each pair of k L R^T: elementwise products and a
+    # reduction (XLA fuses them), not P tiny matrix products.
+    kL = (k[:T * S].reshape(T, P, 2 * V)[..., None] * by_pair(L))
+    Kp = jnp.sum(kL[..., :, None] * by_pair(Rt)[..., None, :], axis=(0, 2))
+    first = a[:S].reshape(P, 2 * V)[:, 0]
+    second = b[:S].reshape(P, 2 * V)[:, 0]
+    # The rest (bolts): a (2 D, 2 D) block per term.
+    a, b, L, Rt, k = a[T * S:], b[T * S:], L[T * S:], Rt[T * S:], k[T * S:]
+    Kp = jnp.concatenate([Kp, k[:, None, None] * L[:, :, None] * Rt[:, None, :]])
+    first, second = jnp.concatenate([first, a]), jnp.concatenate([second, b])
+    Kp = Kp.reshape(-1, 2, D, 2, D)
+    rows = jnp.concatenate([first, first, second, second])
+    cols = jnp.concatenate([first, second, first, second])
+    blocks = jnp.concatenate([Kp[:, 0, :, 0], Kp[:, 0, :, 1], Kp[:, 1, :, 0], Kp[:, 1, :, 1]])
+    own = jnp.arange(N)
+    diag_blocks = diag.reshape(N, D)[:, :, None] * jnp.eye(D, dtype=diag.dtype)
+    if sub.Kc is not None:
+        diag_blocks = diag_blocks + sub.Kc
+    rows, cols = jnp.concatenate([rows, own]), jnp.concatenate([cols, own])
+    return rows, cols, jnp.concatenate([blocks, diag_blocks.astype(blocks.dtype)])
+
+
+def assemble_dense(model: Model, sub: Sub, a, b, L, Rt, k, diag):
+    """sum_m k_m L_m R_m^T + blockdiag(Kc) + diag(diag) as a dense (D N, D N) matrix.
+
+    Scatters the (D, D) blocks of :func:`stiffness_blocks` into K laid out as (N, D,
+    N, D): whole windows, far cheaper than one scattered scalar per entry, and
+    a batch of them (vmap) stays cache-friendly.
+    """
+    N, D = model.n_blocks, model.ndof
+    rows, cols, blocks = stiffness_blocks(model, sub, a, b, L, Rt, k, diag)
+    K4 = jnp.zeros((N, D, N, D), diag.dtype).at[rows, :, cols, :].add(blocks)
+    return K4.reshape(N * D, N * D)
+
+
+def solve_dense(model: Model, sub: Sub, terms, R):
+    """(K_t + eps M)^-1 R by LU on the assembled (D N, D N) matrix.
+
+    ``terms`` is (a, b, L, Rt, k) (:func:`jaxdem.core._springs.with_slip_coupling`): K is
+    unsymmetric where the slip coupling is on. LU every iteration, not
+    Cholesky where K is symmetric: under vmap a choice between the two would
+    run both, and two batched LAPACK calls that may run at once can deadlock
+    XLA's CPU thread pool (see :func:`jaxdem.batch._one_per_device`). LU
+    costs about 7% of a batched sweep's time (measured on the 52-block
+    benchmark tunnel).
+    """
+    a, b, L, Rt, k = terms
+    diag = jnp.where(jnp.repeat(sub.free, model.ndof), model.pseudo_mass.reshape(-1), 1.0)
+    K = assemble_dense(model, sub, a, b, L, Rt, k, diag)
+    return jnp.linalg.solve(K, R.reshape(-1)).reshape(R.shape)
+
+
+def host_matrix(rows, cols, blocks, n: int):
+    """The block matrix of :func:`stiffness_blocks` as an (n, n) SciPy CSC matrix (host arrays).
+
+    Blocks that are all zero (unused pairs of the padded list) are left out.
+    Assembling from the pairs' blocks, summed on the device, rather than from
+    one outer product per spring on the host, cut the demo's host assembly
+    from 9 ms to about 2 ms an iteration.
+    """
+    import scipy.sparse
+
+    rows, cols, blocks = np.asarray(rows), np.asarray(cols), np.asarray(blocks)
+    D = blocks.shape[1]
+    keep = np.any(blocks != 0, axis=(1, 2))
+    rows, cols, blocks = rows[keep], cols[keep], blocks[keep]
+    r = np.broadcast_to(D * rows[:, None, None] + np.arange(D)[:, None], blocks.shape)
+    c = np.broadcast_to(D * cols[:, None, None] + np.arange(D)[None, :], blocks.shape)
+    return scipy.sparse.csc_matrix((blocks.ravel(), (r.ravel(), c.ravel())), shape=(n, n))
+
+
+def _host_sparse_solve(rows, cols, blocks, rhs, active=True, symmetric=True):
+    """Assemble K from its (D, D) blocks (:func:`stiffness_blocks`) on the host and solve K x = rhs.
+
+    The factorisation is SciPy's SuperLU (minimum-degree ordering of K + K^T).
+    ``rhs`` is (n,) or (n, p). CPU only: on a GPU the matrix would travel to
+    the host (use "cg" there). ``active`` False returns zeros at once: a batch
+    member whose iteration has finished (vmap runs the loop body for every
+    member until the last one is done) costs no factorisation.
+    """
+    import scipy.sparse.linalg
+
+    if not bool(np.asarray(active)):
+        return np.zeros_like(np.asarray(rhs))
+    symmetric = bool(np.asarray(symmetric))
+    rhs = np.asarray(rhs)
+    K = host_matrix(rows, cols, blocks, rhs.shape[0])
+    if symmetric:
+        # K is symmetric positive definite: symmetric ordering, no pivoting
+        # (ten times faster than SuperLU's default partial pivoting).
+        lu = scipy.sparse.linalg.splu(K, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                                      options=dict(SymmetricMode=True))
+    else:
+        lu = scipy.sparse.linalg.splu(K, permc_spec="MMD_AT_PLUS_A")
+    return lu.solve(rhs).astype(rhs.dtype)
+
+
+def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True):
+    """(K_t + eps M)^-1 R by a sparse direct solve (SciPy's SuperLU through a host callback).
+
+    Fill-in of a 2D contact graph is mild, so cost and memory grow about
+    linearly with the number of blocks, and a direct solve does not slow down
+    near a mechanism as an iterative one does. The springs of each pair are
+    summed into (D, D) blocks on the device (:func:`stiffness_blocks`), and only those
+    go to the host; vmap solves batch members one after another, and skips
+    those that are not ``active`` (their Newton iteration has finished).
+    ``terms`` is (a, b, L, Rt, k); ``symmetric`` (a traced bool) picks
+    SuperLU's symmetric mode, False where the slip coupling is on.
+    """
+    a, b, L, Rt, k = terms
+    diag = jnp.where(jnp.repeat(sub.free, model.ndof), model.pseudo_mass.reshape(-1), 1.0)
+    rows, cols, blocks = stiffness_blocks(model, sub, a, b, L, Rt, k, diag)
+    rhs = R.reshape(-1)
+    x = jax.pure_callback(_host_sparse_solve, jax.ShapeDtypeStruct(rhs.shape, rhs.dtype),
+                          rows, cols, blocks, rhs, jnp.asarray(active), jnp.asarray(symmetric),
+                          vmap_method="sequential")
+    return x.reshape(R.shape)
+
+
+# Stopping rule of the iterative solve: the Newton loop's forcing term lies in
+# [min, max] (relative 2-norm residual of CG); min is also the default.
+CG_RTOL_MIN = {True: 1e-10, False: 1e-5}  # float64, float32
+CG_RTOL_MAX = 1e-2
+
+
+def compact_terms(model: Model, terms):
+    """The rank-one terms with k != 0, packed into a fixed capacity (the product's cost).
+
+    A slot list holds 2 V slots per candidate pair, of which a touching pair
+    uses one or two (a corner, or the two ends of a face-to-face contact):
+    the matrix-free product runs over 2 slots per candidate pair instead of
+    2 V, V times fewer. Should more terms be nonzero than that
+    (never seen: it needs more than two springs per pair on average over the
+    padded pair list), the surplus ones are left out of the iteration matrix:
+    it stays symmetric positive definite, Newton's residual still has every
+    spring, and the outer iteration converges, linearly instead of
+    quadratically.
+    """
+    a, b, B, k = terms
+    m = k.shape[0]
+    n_bolt = n_bolt_terms(model)
+    cap = min(m, (m - n_bolt) * 2 // max(model.n_vertices * 2, 2) + n_bolt)
+    if cap >= m:
+        return terms
+    (idx,) = jnp.nonzero(k != 0, size=cap, fill_value=0)
+    keep = jnp.arange(cap) < jnp.sum(k != 0)
+    return a[idx], b[idx], B[idx], jnp.where(keep, k[idx], 0.0)
+
+
+def _pcg(matvec, precond, rhs, rtol, maxiter):
+    """Preconditioned conjugate gradients from x = 0 until |r| <= rtol |rhs| (2-norms).
+
+    Returns (x, iterations). ``rtol`` may be traced (an inexact-Newton forcing
+    term). Fixed shapes, one ``lax.while_loop``; vmaps (members stop together).
+    """
+    dot = lambda u, v: jnp.sum(u * v)  # noqa: E731
+    stop = (rtol * jnp.linalg.norm(rhs)) ** 2
+    z = precond(rhs)
+    init = (jnp.zeros_like(rhs), rhs, z, z, dot(rhs, z), jnp.array(0))
+
+    def cond(c):
+        return (dot(c[1], c[1]) > stop) & (c[5] < maxiter)
+
+    def body(c):
+        x, r, z, p, rz, it = c
+        q = matvec(p)
+        pq = dot(p, q)
+        alpha = jnp.where(pq > 0, rz / jnp.where(pq > 0, pq, 1.0), 0.0)
+        x = x + alpha * p
+        r = r - alpha * q
+        z = precond(r)
+        rz_new = dot(r, z)
+        beta = jnp.where(rz > 0, rz_new / jnp.where(rz > 0, rz, 1.0), 0.0)
+        return x, r, z, z + beta * p, rz_new, it + 1
+
+    x, _, _, _, _, it = jax.lax.while_loop(cond, body, init)
+    return x, it
+
+
+def solve_cg(model: Model, sub: Sub, terms, R, rtol=None):
+    """(K_t + eps M)^-1 R by conjugate gradients, matrix-free, block-Jacobi preconditioned.
+
+    The product K x is a gather/scatter over the springs with k != 0 (packed
+    by :func:`compact_terms`): cost and memory linear in the number of
+    contacts, and no host callback, so it runs on a GPU and batches under
+    vmap. ``rtol`` is the relative residual at which CG stops (2-norm): the
+    Newton loop passes an Eisenstat-Walker forcing term (it corrects what CG
+    leaves; its residual test decides convergence), default 1e-10 (1e-5 in
+    float32, which cannot resolve 1e-10).
+    """
+    N, nd = model.n_blocks, model.ndof
+    a, b, B, k = compact_terms(model, terms)
+    pm = jnp.where(sub.free[:, None], model.pseudo_mass, 1.0)
+
+    def matvec(x):
+        y = scatter_pairs(N, a, b, B * (k * jnp.sum(B * gather_pairs(x, a, b), 1))[:, None])
+        if sub.Kc is not None:
+            y = y + jnp.einsum("nij,nj->ni", sub.Kc, x)
+        return jnp.where(sub.free[:, None], y, 0.0) + pm * x
+
+    def block(part):
+        Bp = B[:, part]
+        return k[:, None, None] * Bp[:, :, None] * Bp[:, None, :]
+
+    D = (jax.ops.segment_sum(block(slice(0, nd)), a, N)
+         + jax.ops.segment_sum(block(slice(nd, 2 * nd)), b, N))
+    if sub.Kc is not None:
+        D = D + sub.Kc
+    D = jnp.where(sub.free[:, None, None], D, 0.0) + jax.vmap(jnp.diag)(pm)
+    Dinv = jnp.linalg.inv(D)
+
+    def precond(x):
+        return jnp.einsum("nij,nj->ni", Dinv, x)
+
+    if rtol is None:
+        rtol = CG_RTOL_MIN[R.dtype == jnp.float64]
+    x, _ = _pcg(matvec, precond, R, rtol, 4 * N * nd + 200)
+    return x

@@ -1,0 +1,295 @@
+"""The springs of one geometry sub-step: forces, states, residual and stiffness terms.
+
+Owns :class:`Sub` (everything fixed during a sub-step, a pytree inside jit),
+the contact springs' and bolts' forces and states for a trial increment du
+(:func:`evaluate`, through the contact law of :mod:`jaxdem.core.laws`), the
+residual and the per-block force scale of the equilibrium test, and the
+iteration matrix written as rank-one terms (a, b, B, k)
+(:func:`stiffness_terms`, :func:`_bolt_terms`, :func:`with_slip_coupling`).
+
+Data flow: takes kinematics (:mod:`jaxdem.core.kinematics`) and laws; its terms go
+to the linear solves (:mod:`jaxdem.core._linsolve`), and the Newton iteration
+(:mod:`jaxdem.core._substep`) and the sensitivities call it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+
+from jaxdem.core.kinematics import bolt_length_after, gather_pairs, scatter_pairs
+from jaxdem.core.laws import forces_in_state, mohr_coulomb
+from jaxdem.core.state import OPEN, STICK, Model
+
+
+@functools.partial(jax.tree_util.register_dataclass, meta_fields=[], data_fields=[
+    "geo", "prop", "Bn", "Bs", "fs_old", "fn0", "failed", "pw", "bolt", "load", "free", "stress",
+    "Kc"])
+@dataclasses.dataclass(frozen=True)
+class Sub:
+    """Everything fixed during one geometry sub-step (a pytree that lives inside jit).
+
+    Contacts: ``geo``, ``prop``, rows ``Bn``, ``Bs`` (S, 2 D), committed shear
+    force ``fs_old``, initial normal force ``fn0``, ``failed``, water force
+    ``pw`` (S,) (pore pressure x share, on joint slots). Bolts (when the
+    scene has them): ``bolt`` dict with ``a``, ``b``, ``B`` (nb, 2 D), ``f_old``,
+    ``active``. ``load``: (N, D) external load. ``free``: (N,) blocks with
+    degrees of freedom (not fixed, not excavated). ``stress``: (N, 3)
+    committed stress of deformable blocks (tension positive); ``Kc``: their
+    (N, 6, 6) stiffness (None for rigid blocks).
+    """
+
+    geo: dict
+    prop: dict
+    Bn: jax.Array
+    Bs: jax.Array
+    fs_old: jax.Array
+    fn0: jax.Array
+    failed: jax.Array
+    pw: jax.Array
+    bolt: dict | None
+    load: jax.Array
+    free: jax.Array
+    stress: jax.Array
+    Kc: jax.Array | None
+
+
+def cell_stiffness(model: Model, free):
+    """(N, 6, 6) block-diagonal stiffness of deformable blocks: A D on the strains."""
+    K = jnp.zeros((model.n_blocks, 6, 6), model.area.dtype)
+    kc = (model.area * free)[:, None, None] * model.cell_D
+    return K.at[:, 3:, 3:].set(kc)
+
+
+def _bolt_kinematics(model: Model, sub: Sub, du):
+    """Length L (B,), its gradient g (B, 2 D) and Hessian H (B, 2 D, 2 D) in (du_a, du_b).
+
+    g is the bolt's row (the elongation of a small move, which turns with the
+    anchor-to-anchor line) and H its change: F H is the bolt's geometric
+    stiffness, the string stiffness F / L across its line and the lever-arm
+    terms of its anchors' rotations. Parts of blocks without degrees of freedom
+    are zero.
+    """
+    bolt = sub.bolt
+    D = model.ndof
+    mask = jnp.concatenate([jnp.repeat(bolt["free_a"][:, None], D, 1),
+                            jnp.repeat(bolt["free_b"][:, None], D, 1)], 1).astype(du.dtype)
+    x = gather_pairs(du, bolt["a"], bolt["b"]) * mask
+    length = functools.partial(bolt_length_after, D)
+    L, g = jax.vmap(jax.value_and_grad(length, argnums=3))(bolt["d0"], bolt["ra"], bolt["rb"], x)
+    H = jax.vmap(jax.hessian(length, argnums=3))(bolt["d0"], bolt["ra"], bolt["rb"], x)
+    return L, g * mask, H * mask[:, :, None] * mask[:, None, :]
+
+
+def _bolt_law(model: Model, sub: Sub, L):
+    """Bolt axial forces (kN/m, tension positive) and states from the current length L (m).
+
+    Elastic, k (L - rest), between the compression it may carry (``bolt_comp``; 0: it
+    goes slack, state 3) and its tension capacity min(yield, anchor capacity),
+    where it is plastic (state 1 yielded, 2 pulled out; 4 yielded in compression):
+    the plastic elongation is kept at commit (:func:`jaxdem.core._substep.commit_substep`),
+    so that unloading is elastic from the yielded length.
+    """
+    bolt = sub.bolt
+    trial = model.bolt_k * (L - bolt["rest"])
+    cap, comp = model.bolt_cap, model.bolt_comp
+    force = jnp.where(bolt["active"], jnp.clip(trial, -comp, cap), 0.0)
+    state = jnp.select([trial > cap, (trial < 0) & (comp <= 0), trial < -comp],
+                       [jnp.where(model.bolt_pullout, 2, 1), 3, 4], 0)
+    state = jnp.where(bolt["active"], state, 0)
+    return force, state.astype(jnp.int32)
+
+
+def bolt_rest_length(model: Model, sub: Sub, L, force, state):
+    """The rest length after the step: plastic elongation or shortening kept."""
+    k = model.bolt_k
+    plastic = (state == 1) | (state == 2) | (state == 4)
+    return jnp.where(sub.bolt["active"] & plastic, L - force / k, sub.bolt["rest"])
+
+
+def evaluate(model: Model, sub: Sub, du, frozen, frozen_state, prev, band):
+    """Spring forces, states and the residual for a trial increment du.
+
+    The springs carry the effective normal force fn (compression positive):
+    fn0 - kn * gap, through the tension cut-off and Mohr-Coulomb; the blocks
+    also receive the water force pw on the faces of joint slots, open or
+    closed (:func:`jaxdem.core.loads.water_force`). ``prev`` is the
+    previous iterate's state and ``band`` the open/close hysteresis (kN/m) of
+    :func:`jaxdem.core.laws.mohr_coulomb`. A ``frozen`` slot carries the forces of
+    ``frozen_state`` (:func:`jaxdem.core.laws.forces_in_state`); ``misfit`` (kN/m)
+    is how far they are from the law's, |d fn| + |d fs| (zero where not
+    frozen), and ``R_law`` the residual with the law's forces everywhere.
+    """
+    geo = sub.geo
+    x = gather_pairs(du, geo["a"], geo["b"])
+    dn = jnp.sum(sub.Bn * x, axis=1)
+    ds = jnp.sum(sub.Bs * x, axis=1)
+    gap = geo["gap"] + dn
+    fn_trial = sub.fn0 - sub.prop["kn"] * gap
+    fs_trial = sub.fs_old + sub.prop["ks"] * ds
+    active = geo["active"]
+    fn_l, fs_l, st_l = mohr_coulomb(fn_trial, fs_trial, sub.prop, sub.failed, active, prev, band)
+    fn_f, fs_f = forces_in_state(fn_trial, fs_trial, sub.prop, sub.failed, frozen_state, band)
+    fn = jnp.where(frozen, fn_f, fn_l)
+    fs = jnp.where(frozen, fs_f, fs_l)
+    st = jnp.where(frozen, frozen_state, st_l)
+    # Water presses on a joint's faces whether it is closed or open (within
+    # the contact margin, where the slot is active): the springs carry only
+    # the effective force. Tying pw to the closed state would make the force
+    # jump by pw where a joint opens, and a slot whose water lifts its faces
+    # apart would chatter open/closed with no equilibrium in either state.
+    total_n = fn + sub.pw if model.has_water else fn
+    d_n = jnp.where(frozen & active, fn_l - fn, 0.0)
+    d_s = jnp.where(frozen & active, fs_l - fs, 0.0)
+    internal = scatter_pairs(model.n_blocks, geo["a"], geo["b"],
+                        sub.Bn * total_n[:, None] - sub.Bs * fs[:, None])
+    to_law = scatter_pairs(model.n_blocks, geo["a"], geo["b"],
+                      sub.Bn * d_n[:, None] - sub.Bs * d_s[:, None])
+    out = dict(fn=fn, fs=fs, state=st, gap=gap, fn_trial=fn_trial, fs_trial=fs_trial,
+               total_n=total_n, misfit=jnp.abs(d_n) + jnp.abs(d_s), law_state=st_l)
+    if model.n_bolts:
+        L, g, H = _bolt_kinematics(model, sub, du)
+        bf, bst = _bolt_law(model, sub, L)
+        bolt = sub.bolt
+        bolt_rows = -g * bf[:, None]
+        internal = internal + scatter_pairs(model.n_blocks, bolt["a"], bolt["b"], bolt_rows)
+        out.update(bolt_force=bf, bolt_state=bst, bolt_length=L, bolt_g=g, bolt_H=H,
+                   bolt_rows=bolt_rows)
+    if model.ndof == 6:
+        # Deformable blocks: the stress (committed + D d_eps) resists the strains.
+        dsig = jnp.einsum("nij,nj->ni", model.cell_D, du[:, 3:])
+        internal = internal.at[:, 3:].add(-model.area[:, None] * (sub.stress + dsig))
+        out["stress"] = sub.stress + dsig
+    out["internal"] = internal
+    out["R"] = jnp.where(sub.free[:, None], sub.load + internal, 0.0)
+    out["R_law"] = jnp.where(sub.free[:, None], out["R"] + to_law, 0.0)
+    return out
+
+
+def block_residual(model: Model, R):
+    """(N,) max(|Rx|, |Ry|, |M| / radius, |R_strain| / radius) of each block (kN/m)."""
+    r = jnp.maximum(jnp.abs(R[:, 0]), jnp.abs(R[:, 1]))
+    return jnp.maximum(r, jnp.max(jnp.abs(R[:, 2:]), axis=1) / model.radius)
+
+
+def block_scale(model: Model, sub: Sub, ev=None):
+    """(N,) force scale (kN/m) of each block's equilibrium test.
+
+    The largest of the block's load and of the forces on it: spring forces
+    (committed, in-situ and water; with ``ev`` also the current ones, |fn| +
+    |fs|), bolt forces, and for a deformable block its stress times area over
+    radius, measured like :func:`block_residual`. Each block is balanced to
+    the tolerance of its own forces: with one scale for the whole scene (the
+    largest load) a 1 m block on a 1000 m one would pass with a residual of
+    the order of its own weight, and could slide unnoticed.
+    """
+    N = model.n_blocks
+
+    def per_block(c, a, b):
+        # segment_max gives -inf to blocks without any entry.
+        return jnp.maximum(jnp.maximum(jax.ops.segment_max(c, a, N),
+                                       jax.ops.segment_max(c, b, N)), 0.0)
+
+    c = jnp.abs(sub.fn0) + jnp.abs(sub.fs_old) + jnp.abs(sub.pw)
+    if ev is not None:
+        c = jnp.maximum(c, jnp.abs(ev["total_n"]) + jnp.abs(ev["fs"]))
+    s = jnp.maximum(jnp.linalg.norm(sub.load[:, :2], axis=1),
+                    jnp.max(jnp.abs(sub.load[:, 2:]), axis=1) / model.radius)
+    s = jnp.maximum(s, per_block(jnp.where(sub.geo["active"], c, 0.0), sub.geo["a"],
+                                 sub.geo["b"]))
+    if model.n_bolts:
+        bolt = sub.bolt
+        f = jnp.abs(bolt["f_old"])
+        if ev is not None:
+            f = jnp.maximum(f, jnp.abs(ev["bolt_force"]))
+        s = jnp.maximum(s, per_block(jnp.where(bolt["active"], f, 0.0), bolt["a"], bolt["b"]))
+    if model.ndof == 6:
+        stress = jnp.abs(sub.stress) if ev is None else jnp.abs(ev["stress"])
+        s = jnp.maximum(s, jnp.max(stress, axis=1) * model.area / model.radius)
+    return s
+
+
+def stiffness_terms(model: Model, sub: Sub, ev, consistent):
+    """The iteration matrix K_t = sum_m k_m B_m B_m^T as rank-one terms (a, b, B, k).
+
+    Closed slots carry both springs: for a slipping slot this is the elastic
+    (secant) stiffness, which keeps every step of the order of the elastic
+    compliance. With ``consistent``, slipping slots lose their shear spring
+    (and yielded bolts theirs): the tangent of the slip law (its symmetric
+    part; the direct solvers add the coupling d fs / d fn = tan(phi) while
+    it is tried, :func:`with_slip_coupling`; the cg path does without),
+    tried once the states hold so that slip settles in a few iterations, and
+    used once the elastic iteration stalls so that a sliding mechanism makes
+    a finite move (bounded by the step length) instead of creeping at
+    elastic speed.
+    """
+    st = ev["state"]
+    closed = sub.geo["active"] & (st != OPEN)
+    kn = jnp.where(closed, sub.prop["kn"], 0.0)
+    ks = jnp.where(closed & ((st == STICK) | ~consistent), sub.prop["ks"], 0.0)
+    a, b = sub.geo["a"], sub.geo["b"]
+    terms = [(a, b, sub.Bn, kn), (a, b, sub.Bs, ks)]
+    if model.n_bolts:
+        terms.append(_bolt_terms(model, sub, ev, consistent))
+    return [jnp.concatenate(x) for x in zip(*terms, strict=True)]
+
+
+def _bolt_terms(model: Model, sub: Sub, ev, consistent):
+    """The bolts' tangent as rank-one terms (a, b, v, lambda): 2 D a bolt.
+
+    K_b = k g g^T + F H (:func:`_bolt_kinematics`): the axial spring (none for a
+    plastic or slack bolt in the consistent tangent; the elastic one in the
+    secant) and the geometric stiffness of its force, which holds a block hung
+    on a bolt sideways (F / L) and in rotation. Symmetric: written as its
+    eigen-pairs, so that every linear solver takes it as it takes the springs.
+    Its negative part (a block hung below its centroid is unstable in rotation)
+    is kept for the direct solvers and left out of the conjugate-gradient
+    iteration, which needs a positive definite matrix (Newton then converges
+    linearly there).
+    """
+    bolt = sub.bolt
+    D = model.ndof
+    g, H, F = ev["bolt_g"], ev["bolt_H"], ev["bolt_force"]
+    axial = jnp.where(bolt["active"] & ((ev["bolt_state"] == 0) | ~consistent), model.bolt_k, 0.0)
+    K = axial[:, None, None] * g[:, :, None] * g[:, None, :] + F[:, None, None] * H
+    K = jnp.where(bolt["active"][:, None, None], 0.5 * (K + jnp.swapaxes(K, 1, 2)), 0.0)
+    lam, vec = jnp.linalg.eigh(K)
+    if model.linear_solver == "cg":
+        lam = jnp.maximum(lam, 0.0)
+    nb = g.shape[0]
+    rep = lambda x: jnp.repeat(x, 2 * D)  # noqa: E731
+    return (rep(bolt["a"]), rep(bolt["b"]), jnp.swapaxes(vec, 1, 2).reshape(nb * 2 * D, 2 * D),
+            lam.reshape(-1))
+
+
+def n_bolt_terms(model: Model) -> int:
+    """Rank-one terms of the bolts at the end of a term list (:func:`_bolt_terms`)."""
+    return model.n_bolts * 2 * model.ndof
+
+
+def with_slip_coupling(model: Model, sub: Sub, ev, terms, on):
+    """``terms`` (a, b, B, k) with the slip law's coupling added where ``on``: (a, b, L, Rt, k).
+
+    A slipping slot's shear force follows its normal force, d fs / d fn_trial =
+    sign(fs) tan(phi) (:func:`jaxdem.core.laws.forces_in_state`), so the exact
+    tangent has the unsymmetric terms -(d fs / d fn_trial) kn Bs Bn^T. With
+    them Newton converges quadratically once the states hold, where the slip
+    tangent's symmetric part converges linearly (about 0.7 an iteration). The
+    group goes after the slots' two and before the bolts, as
+    :func:`jaxdem.core._linsolve.assemble_dense` expects.
+    """
+    a, b, B, k = terms
+    S = sub.geo["a"].shape[0]
+    law = lambda fn_t: forces_in_state(fn_t, ev["fs_trial"], sub.prop, sub.failed,  # noqa: E731
+                                       ev["state"])[1]
+    _, sn = jax.jvp(law, (ev["fn_trial"],), (jnp.ones_like(ev["fn_trial"]),))
+    closed = sub.geo["active"] & (ev["state"] != OPEN)
+    kc = jnp.where(on & closed, -sn * sub.prop["kn"], 0.0)
+    ga, gb = sub.geo["a"], sub.geo["b"]
+    cat = jnp.concatenate
+    return (cat([a[:2 * S], ga, a[2 * S:]]), cat([b[:2 * S], gb, b[2 * S:]]),
+            cat([B[:2 * S], sub.Bs, B[2 * S:]]), cat([B[:2 * S], sub.Bn, B[2 * S:]]),
+            cat([k[:2 * S], kc, k[2 * S:]]))

@@ -1,0 +1,448 @@
+"""One geometry sub-step: detect contacts, Newton iteration at fixed geometry, commit.
+
+Owns :func:`prepare_substep` (contacts and their history at the current geometry:
+the :class:`jaxdem.core._springs.Sub`, from its slots' part :func:`slot_fields_of` and
+its blocks' part :func:`block_fields_of`), :func:`_newton` (the iteration on du),
+:func:`commit_substep` (move the blocks, commit the springs, global balance),
+:func:`_admissibility` and :func:`substep`, which chains them. The increment
+(:mod:`jaxdem.core.increment`) repeats sub-steps until one converges.
+
+
+eps M only shapes the path: the converged answer solves R = 0 whatever eps
+is, and where K_t is singular (a free block, a sliding mechanism) it turns
+the step into a finite move along the mechanism, which the step length
+bounds. Where slots slip, the elastic (secant) matrix converges only
+linearly; once it has reduced R twice with the states held, or has stalled
+(three iterations without progress), the slip tangent is tried (on the
+direct paths the exact one, with the coupling of shear to normal force),
+and kept while it reduces R. When the secant iteration stalls and even the
+slip tangent makes no progress (R stays put: a block
+just past limit equilibrium, whose small residual would move it only by
+R / (eps k) an iteration), the step goes the whole step length along the
+mechanism, so that it is followed and reported, not left to creep into the
+iteration limit. A slot whose state flips four times in one sub-step is
+frozen in its last state for the rest of that sub-step, which ends
+open/close chatter. Frozen slots only shape the path: a sub-step converges
+only if every block also balances with the forces the contact law gives
+(a frozen slot at its limit: within the tolerance), and returns those. A
+frozen slot that breaks its law there (stuck beyond its strength, closed
+in tension) takes the law's state and the iteration goes on.
+
+Data flow: takes spring forces and stiffness (:mod:`jaxdem.core._springs`), the
+linear solves (:mod:`jaxdem.core._linsolve`), kinematics, contact detection and
+loads from below; used by :mod:`jaxdem.core.increment` and
+:mod:`jaxdem.core.sensitivities`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from jaxdem.core._contact import broad_phase, narrow_phase, remap_history
+from jaxdem.core._linsolve import CG_RTOL_MAX, CG_RTOL_MIN, linear_solve
+from jaxdem.core._springs import (
+    Sub,
+    block_residual,
+    block_scale,
+    bolt_rest_length,
+    cell_stiffness,
+    evaluate,
+    stiffness_terms,
+    with_slip_coupling,
+)
+from jaxdem.core.kinematics import (
+    b_rows,
+    block_travel,
+    bolt_geometry,
+    cross,
+    gather_pairs,
+    move_blocks,
+)
+from jaxdem.core.laws import slot_properties
+from jaxdem.core.loads import water_force
+from jaxdem.core.state import OPEN, SLIP, STICK, Loads, Model, State
+
+
+def force_scales(model: Model, sub: Sub):
+    """Force scale (N,) of each block's equilibrium test and hysteresis band (S,) of each slot.
+
+    The scale (:func:`jaxdem.core._springs.block_scale`) is a block's load or the
+    largest force on it (an in-situ state has large contact forces and no net
+    load). No block is asked to balance below 1000 round-offs of the scene's
+    largest force scale (nor is a scene without loads below 1e-3 f_ref), which
+    is all that a block without load or contacts has. The band by which a
+    slot's trial force must pass a threshold of the law to change its state
+    (open/closed, stuck/slipping: :func:`jaxdem.core.laws.mohr_coulomb`) is a tenth
+    of the tolerance of the smaller free block it touches.
+    """
+    s0 = block_scale(model, sub)
+    biggest = jnp.maximum(jnp.max(jnp.where(sub.free, s0, 0.0)), model.f_ref * 1e-3)
+    floor = 1e3 * jnp.finfo(sub.load.dtype).eps * biggest
+    s0 = jnp.maximum(s0, floor)
+    s_slot = jnp.minimum(jnp.where(sub.free, s0, jnp.inf)[sub.geo["a"]],
+                         jnp.where(sub.free, s0, jnp.inf)[sub.geo["b"]])
+    return s0, 0.1 * model.tol * jnp.where(jnp.isfinite(s_slot), s_slot, biggest)
+
+
+def _newton(model: Model, sub: Sub, st0):
+    """Newton iteration on du at fixed geometry (one sub-step).
+
+    Returns du, the final evaluation, and the loop record (converged, clipped,
+    iteration count, relative residual).
+    """
+    S = st0.shape[0]
+    N = model.n_blocks
+    dtype = sub.load.dtype
+    s0, band = force_scales(model, sub)
+    zeros_s = jnp.zeros(S, jnp.int32)
+    # A small block moves at most a quarter of its radius per sub-step.
+    step = jnp.minimum(model.step_length, 0.25 * model.radius)
+
+    def cond(c):
+        return ~c["done"]
+
+    def body(c):
+        ev = evaluate(model, sub, c["du"], c["frozen"], c["frozen_state"], c["st"], band)
+        changed = (ev["state"] != c["st"]) & sub.geo["active"]
+        scale_b = jnp.maximum(s0, block_scale(model, sub, ev))
+        tol = model.tol * scale_b
+        # Largest residual of a free block relative to its own tolerance.
+        rnorm = jnp.max(jnp.where(sub.free, block_residual(model, ev["R"]) / tol, 0.0))
+        # Frozen slots only shape the path: the answer must balance every
+        # block with the forces of the contact law itself (R_law), within the
+        # same tolerance, so that no state against the law is returned. Where
+        # it does not, the frozen slots with a misfit on an unbalanced block
+        # were frozen on the way to an answer elsewhere (stuck beyond their
+        # strength, closed in tension): they take the law's state, and the
+        # iteration goes on with it (an active-set update).
+        balanced = (rnorm <= 1.0) & ~jnp.any(changed)
+        off = sub.free & (block_residual(model, ev["R_law"]) > tol)
+        converged = balanced & ~jnp.any(off)
+        a, b = sub.geo["a"], sub.geo["b"]
+        reassign = balanced & c["frozen"] & (ev["misfit"] > 0) & (off[a] | off[b])
+        flips = c["flips"] + changed.astype(jnp.int32)
+        newly = (flips >= 4) & ~c["frozen"]
+        frozen = c["frozen"] | newly
+        frozen_state = jnp.where(newly, ev["state"],
+                                 jnp.where(reassign, ev["law_state"], c["frozen_state"]))
+        # The secant matrix (slipping slots keep their shear spring) converges
+        # only linearly where slots slip, the slower the more the shear springs
+        # dominate (a rate of 0.96 an iteration is common). Once it has
+        # reduced the residual twice in a row with the states held and slots
+        # slipping, the slip tangent is tried, and kept while it reduces the
+        # residual and no state changes: on the direct paths with the slip
+        # coupling (the exact tangent of the held states), on the cg path its
+        # symmetric part. Near a mechanism it is nearly singular: a tried
+        # step that does not reduce the residual, or that would leave the step
+        # length (that step is not taken), hands back to the secant for the
+        # rest of the sub-step. Three secant iterations that barely reduce the
+        # residual (stall) mean a mechanism or slip that the secant cannot
+        # settle: the slip tangent, kept while it reduces the residual, and
+        # ``creeping`` below.
+        still = ~jnp.any(changed)
+        progress = rnorm <= 0.98 * c["rprev"]
+        settled = jnp.where(still & progress, c["settled"] + 1, 0)
+        failed = c["trying"] & ~progress
+        stall = jnp.where(still & ~progress & ~failed, c["stall"] + 1, 0)
+        slipping = jnp.any(sub.geo["active"] & (ev["state"] == SLIP))
+        if model.n_bolts:
+            slipping |= jnp.any(sub.bolt["active"] & (ev["bolt_state"] != 0))
+        untried = c["untried"] & ~failed
+        trying = still & untried & slipping & (c["trying"] | (settled >= 2)
+                                               | (c["tangent"] & progress))
+        tangent = trying | (stall >= 3)
+
+        def newton_step():
+            terms = stiffness_terms(model, sub, ev, tangent)
+            if model.linear_solver == "cg":
+                # Inexact Newton (Eisenstat-Walker, choice 2): solve as accurately
+                # as Newton's own progress warrants, and no more accurately than
+                # the tolerance needs (the residual test below still decides).
+                ratio = jnp.where(jnp.isfinite(c["rprev"]), rnorm / c["rprev"], jnp.inf)
+                tol_min = jnp.min(jnp.where(sub.free, tol, jnp.inf))
+                need = 0.1 * tol_min / jnp.maximum(jnp.linalg.norm(ev["R"]),
+                                                   jnp.finfo(tol.dtype).tiny)
+                eta = jnp.clip(jnp.maximum(0.9 * ratio**2, need),
+                               CG_RTOL_MIN[tol.dtype == jnp.float64], CG_RTOL_MAX)
+                return linear_solve(model, sub, terms, ev["R"], rtol=eta)
+            terms = with_slip_coupling(model, sub, ev, terms, trying)
+            return linear_solve(model, sub, terms, ev["R"], active=~c["done"] & ~converged,
+                                symmetric=~trying)
+
+        # The iterate that converged takes no step: its matrix is not
+        # assembled nor factorised (one factorisation a sub-step). Under vmap
+        # a cond on a per-member flag would run both branches, so a batch
+        # (model.lanes) skips only when none of its members needs a step; the
+        # sparse path also skips the host solve of each member that does not.
+        idle = converged
+        if model.lanes is not None:
+            idle = jax.lax.psum(jnp.where(converged | c["done"], 0, 1), model.lanes) == 0
+        ddu = jax.lax.cond(idle, lambda: jnp.zeros_like(c["du"]), newton_step)
+        t_now = block_travel(model, c["du"])
+        t_step = block_travel(model, ddu)
+        room = jnp.maximum(step - t_now, 0.0)
+        fit = jnp.min(jnp.where(t_step > 0, room / jnp.where(t_step > 0, t_step, 1.0), jnp.inf))
+        # Still no progress with the slip tangent: a mechanism whose residual
+        # is small (a block just past limit equilibrium) would only creep, by
+        # R / (eps k) an iteration, and run out of iterations instead of
+        # showing that it moves. Along the mechanism R does not change, so go
+        # the whole step along it (the elastic part of ddu, eps times
+        # smaller, stays negligible) and let the next sub-step follow it.
+        creeping = c["stall"] >= 5
+        s_travel = jnp.where(creeping & jnp.isfinite(fit), fit, jnp.minimum(fit, 1.0))
+        # No step lands a block inside another. A slot may close during the step
+        # but not sink deeper than its spring's own compression under the forces
+        # in play (the larger force scale of its two blocks over its normal
+        # stiffness): a falling block lands on its support, it does not plunge a
+        # step length into it. Newton's own step (scale <= 1) compresses a
+        # closed spring as its law says, so closed slots bound only a step
+        # scaled beyond it (``creeping``); every step actually taken is checked.
+        s_slot = jnp.where(sub.free, scale_b, 0.0)
+        s_slot = jnp.maximum(s_slot[sub.geo["a"]], s_slot[sub.geo["b"]])
+        sink = s_slot / jnp.maximum(sub.prop["kn"], jnp.finfo(dtype).tiny)
+        dn_step = jnp.sum(sub.Bn * gather_pairs(ddu, sub.geo["a"], sub.geo["b"]), axis=1)
+        closing = sub.geo["active"] & (dn_step < 0)
+        depth = jnp.maximum(ev["gap"], 0.0) + sink
+        s_slots = jnp.where(closing, depth / jnp.where(closing, -dn_step, 1.0), jnp.inf)
+        is_open = ev["state"] == OPEN
+        s_slots = jnp.where(is_open, s_slots, jnp.maximum(s_slots, 1.0))
+        s_gap = jnp.min(s_slots, initial=jnp.inf)
+        scale = jnp.minimum(s_travel, s_gap)
+        clipped = (s_travel <= s_gap) & ((s_travel < 1.0) | creeping)
+        overshoot = trying & clipped
+        untried = untried & ~overshoot
+        scale = jnp.where(overshoot, 0.0, scale)
+        clipped = clipped & ~overshoot
+        du = jnp.where(converged, c["du"], c["du"] + scale * ddu)
+        finite = jnp.all(jnp.isfinite(du))
+        it = c["it"] + 1
+        done = converged | clipped | ~finite | (it >= model.max_iterations)
+        return dict(du=du, st=ev["state"], flips=flips, frozen=frozen, frozen_state=frozen_state,
+                    it=it, done=done, converged=converged, clipped=clipped & ~converged,
+                    finite=finite, rnorm=rnorm * model.tol, rprev=rnorm, stall=stall,
+                    settled=settled, trying=trying, untried=untried, tangent=tangent)
+
+    init = dict(du=jnp.zeros((N, model.ndof), sub.load.dtype), st=st0, flips=zeros_s,
+                frozen=jnp.zeros(S, bool), frozen_state=zeros_s, it=jnp.array(0),
+                done=jnp.array(False), converged=jnp.array(False), clipped=jnp.array(False),
+                finite=jnp.array(True), rnorm=jnp.array(jnp.inf, sub.load.dtype),
+                rprev=jnp.array(jnp.inf, sub.load.dtype), stall=jnp.array(0),
+                settled=jnp.array(0), trying=jnp.array(False), untried=jnp.array(True),
+                tangent=jnp.array(False))
+    c = jax.lax.while_loop(cond, body, init)
+    # A converged sub-step returns (and commits) the law's own forces and
+    # states, which balance the blocks; one cut short keeps the frozen ones.
+    ev = evaluate(model, sub, c["du"], c["frozen"] & ~c["converged"], c["frozen_state"], c["st"],
+                   band)
+    return c["du"], ev, c
+
+
+def _snap_gaps(geo: dict, carried) -> dict:
+    """Round-off gaps of springs that carry nothing set to zero (values only).
+
+    A gap is a difference of coordinates, resolved to eps |x| at best: two faces
+    that touch give gaps of +-1e-16 m, and springs that push blocks apart with
+    k x 1e-16 m. A free block pushed by such forces (a key block at rest between
+    its joints, with no force yet) slid on them at round-off scale, the slip
+    iteration stalled, and the stall was followed as a mechanism: the block was
+    moved 59 mm. A spring that has carried a force (``carried``, kN/m: its
+    committed normal and shear forces) keeps its gap, however small: its force
+    is its history (in float32 a compression of a few eps |x| is a real one). The
+    derivatives of the gaps are kept (jaxdem.differentiable).
+    """
+    eps = jnp.finfo(geo["gap"].dtype).eps
+    resolution = 8.0 * eps * jnp.max(jnp.abs(geo["point"]), axis=1)
+    small = (jnp.abs(geo["gap"]) <= resolution) & (carried == 0)
+    return dict(geo, gap=geo["gap"] - jax.lax.stop_gradient(jnp.where(small, geo["gap"], 0.0)))
+
+
+def prepare_substep(model: Model, state: State, loads: Loads):
+    """Detect contacts at the current geometry and carry their history: a sub-step's data.
+
+    Returns (mdl, sub, st0, pairs, need): the model with ``free`` restricted to
+    the blocks alive now, the :class:`jaxdem.core._springs.Sub`, the slots' starting states, the
+    pair list and what the contact list needed (``pairs``, ``cell_full``).
+    """
+    N = model.n_blocks
+    free = model.free & state.alive
+    mdl = dataclasses.replace(model, free=free)
+    pairs, count, cell_full = broad_phase(mdl, state.verts, state.capacity, state.alive)
+    hist = {k: v.reshape(-1) for k, v in remap_history(state, pairs, N).items()}
+    geo = narrow_phase(mdl, state.verts, state.centroid, pairs)
+    geo, slots, st0 = slot_fields_of(mdl, state, loads, geo, hist)
+    sub = Sub(geo=geo, **slots, **block_fields_of(model, state, loads, free))
+    return mdl, sub, st0, pairs, dict(pairs=count, cell_full=cell_full)
+
+
+def slot_fields_of(mdl: Model, state: State, loads: Loads, geo: dict, hist: dict):
+    """The slots' part of a sub-step's data, from their contacts and carried history.
+
+    ``geo``: :func:`jaxdem.core._contact.narrow_phase`'s slots (or any subset of them, as
+    the sensitivities take the active ones); ``hist``: their history
+    (:func:`jaxdem.core._contact.remap_history`, one entry per slot); ``mdl``: the model
+    with ``free`` restricted to the live blocks. Returns (geo with round-off
+    gaps snapped, the :class:`jaxdem.core._springs.Sub` fields prop, Bn, Bs, fs_old,
+    fn0, failed and pw, the slots' starting states).
+    """
+    prop = slot_properties(mdl, geo)
+    carried = jnp.where(hist["present"], jnp.abs(hist["fn"]) + jnp.abs(hist["fs"]), 0.0)
+    geo = _snap_gaps(geo, carried)
+    same = hist["present"] & (hist["edge"] == geo["edge"]) & geo["active"]
+    failed = jnp.where(same, hist["failed"], geo["gap"] > mdl.touch_tol)
+    fs_old = jnp.where(same, hist["fs"], 0.0)
+    fn0 = jnp.where(same, hist["fn0"], 0.0)
+    # A new slot starts closed where its faces touch: round-off in a gap of
+    # zero must not leave a block resting on its support without springs.
+    st0 = jnp.where(same, hist["cstate"],
+                    jnp.where(geo["gap"] <= mdl.touch_tol, STICK, OPEN)).astype(jnp.int32)
+    D = mdl.ndof
+    Bn = b_rows(mdl.free, geo["a"], geo["b"], geo["point"], geo["point"], geo["normal"],
+                state.centroid, D)
+    Bs = b_rows(mdl.free, geo["a"], geo["b"], geo["point"], geo["point"], geo["tangent"],
+                state.centroid, D)
+    if mdl.has_water:
+        pw = water_force(mdl, geo, prop, loads.water_x, loads.water_y, loads.water_scale)
+    else:
+        pw = jnp.zeros_like(fs_old)
+    return geo, dict(prop=prop, Bn=Bn, Bs=Bs, fs_old=fs_old, fn0=fn0, failed=failed, pw=pw), st0
+
+
+def block_fields_of(model: Model, state: State, loads: Loads, free) -> dict:
+    """The blocks' and bolts' part of a sub-step's data (``free``: the live free blocks)."""
+    bolt = None
+    if model.n_bolts:
+        bg = bolt_geometry(model, state)
+        alive_b = state.alive[bg["a"]] & state.alive[bg["b"]] & loads.bolt_active
+        d0 = bg["point_a"] - bg["point_b"]
+        # A bolt is installed unstressed: its rest length is its length when it
+        # first acts (bolt_rest 0 until then), and grows with its plastic elongation.
+        length0 = jnp.linalg.norm(d0, axis=1)
+        rest = jnp.where(state.bolt_rest > 0, state.bolt_rest, length0)
+        bolt = dict(a=bg["a"], b=bg["b"], f_old=state.bolt_force, active=alive_b, d0=d0,
+                    ra=bg["point_a"] - state.centroid[bg["a"]],
+                    rb=bg["point_b"] - state.centroid[bg["b"]], rest=rest,
+                    free_a=free[bg["a"]], free_b=free[bg["b"]])
+    return dict(bolt=bolt, load=jnp.where(free[:, None], loads.force, 0.0), free=free,
+                stress=state.stress, Kc=cell_stiffness(model, free) if model.ndof == 6 else None)
+
+
+def commit_substep(model: Model, state: State, sub: Sub, pairs, du, ev):
+    """Move the blocks by du and commit the springs' forces and states.
+
+    Returns (state, balance, snapshot): the new state, the global balance of
+    the free blocks and the contact snapshot (forces at the sub-step's points).
+    """
+    N, D = model.n_blocks, model.ndof
+    geo, free = sub.geo, sub.free
+    st = ev["state"]
+    active = geo["active"]
+    opened = (st == OPEN) & ((sub.prop["tension"] > 0) | (ev["gap"] > model.touch_tol))
+    failed_new = sub.failed | (active & ~sub.prop["bonded"] & ((st == SLIP) | opened))
+    moved = move_blocks(model, state, du, ev.get("stress"))
+    shape = state.fs.shape
+    new_state = dataclasses.replace(
+        moved, pairs=pairs, fs=ev["fs"].reshape(shape), fn=ev["fn"].reshape(shape),
+        fn0=sub.fn0.reshape(shape), failed=failed_new.reshape(shape),
+        edge=geo["edge"].reshape(shape), cstate=st.reshape(shape),
+        present=active.reshape(shape))
+    if model.n_bolts:
+        rest = bolt_rest_length(model, sub, ev["bolt_length"], ev["bolt_force"], ev["bolt_state"])
+        new_state = dataclasses.replace(
+            new_state, bolt_force=ev["bolt_force"], bolt_state=ev["bolt_state"],
+            bolt_rest=jnp.where(sub.bolt["active"], rest, state.bolt_rest))
+    # Global balance (about the origin) of the free blocks: applied loads and
+    # the forces from blocks without degrees of freedom (bolts anchored in
+    # them included).
+    c_xy = state.centroid
+    moment = lambda F: F[:, 2] + cross(c_xy, F[:, :2])  # noqa: E731
+    a, b = geo["a"], geo["b"]
+    f_row = sub.Bn * ev["total_n"][:, None] - sub.Bs * ev["fs"][:, None]
+    reaction = (jax.ops.segment_sum(jnp.where((~free[b])[:, None], f_row[:, :3], 0.0), a, N)
+                + jax.ops.segment_sum(jnp.where((~free[a])[:, None], f_row[:, D:D + 3], 0.0),
+                                      b, N))
+    if model.n_bolts:
+        bolt = sub.bolt
+        rows = ev["bolt_rows"]
+        reaction = reaction + (
+            jax.ops.segment_sum(jnp.where((~free[bolt["b"]])[:, None], rows[:, :3], 0.0),
+                                bolt["a"], N)
+            + jax.ops.segment_sum(jnp.where((~free[bolt["a"]])[:, None], rows[:, D:D + 3], 0.0),
+                                  bolt["b"], N))
+    # The imbalance is relative to the forces in play: the summed loads and
+    # reactions, or, where both are nil (an in-situ stress that balances
+    # itself, with no load), the largest spring force carried at the start or
+    # the end of the sub-step (the forces the convergence test, block_scale,
+    # was relative to: an in-situ force released to nothing is still the
+    # scale its block was balanced to), and at least the convergence test's
+    # floor (1e-3 f_ref), so that round-off over round-off does not read as
+    # an imbalance of 1.
+    carried = jnp.maximum(jnp.abs(ev["total_n"]) + jnp.abs(ev["fs"]),
+                          jnp.abs(sub.fn0) + jnp.abs(sub.fs_old) + jnp.abs(sub.pw))
+    carried = jnp.max(jnp.where(active, carried, 0.0), initial=0.0)
+    carried = jnp.maximum(carried, 1e-3 * model.f_ref)
+    admissible = _admissibility(model, sub, ev)
+    balance = dict(
+        **admissible,
+        applied=jnp.stack([sub.load[:, 0].sum(), sub.load[:, 1].sum(), moment(sub.load).sum()]),
+        reaction=jnp.stack([reaction[:, 0].sum(), reaction[:, 1].sum(), moment(reaction).sum()]),
+        scale=jnp.maximum(jnp.maximum(jnp.sum(jnp.linalg.norm(reaction[:, :2], axis=1)),
+                                      jnp.sum(jnp.linalg.norm(sub.load[:, :2], axis=1))),
+                          carried),
+    )
+    joint = active & ~sub.prop["bonded"] & ~model.joint_intact[geo["joint"]]
+    snapshot = dict(point=geo["point"], normal=geo["normal"], a=a, b=b, active=active,
+                    fn=ev["fn"], fs=ev["fs"], pw=ev["total_n"] - ev["fn"], state=st, joint=joint)
+    return new_state, balance, snapshot
+
+
+def _admissibility(model: Model, sub: Sub, ev) -> dict:
+    """How far the sub-step's answer is from admissible (:data:`jaxdem.core.status.OVERLAP_TOL`).
+
+    ``overlap`` (m): the deepest interpenetration at a contact; ``overlap_rel``: the
+    same relative to the smaller block's size; ``excess``: the largest excess of a
+    contact's forces over its strength (Mohr-Coulomb, tension cut-off), relative
+    to the force scale of its blocks. The contact law itself never exceeds its
+    strength; a slot held frozen in its state may, by up to the tolerance.
+    """
+    geo, prop = sub.geo, sub.prop
+    a, b, active = geo["a"], geo["b"], geo["active"]
+    size = jnp.where(sub.free, model.radius, jnp.inf)
+    size = jnp.minimum(size[a], size[b])
+    size = jnp.where(jnp.isfinite(size), size, jnp.maximum(model.radius[a], model.radius[b]))
+    depth = jnp.where(active, jnp.maximum(-ev["gap"], 0.0), 0.0)
+    fn, fs = ev["fn"], ev["fs"]
+    bonded = prop["bonded"] & ~sub.failed
+    c = jnp.where(sub.failed, 0.0, prop["cohesion"])
+    t_cap = jnp.where(sub.failed, 0.0, prop["tension"])
+    limit = jnp.maximum(c + fn * prop["tanphi"], 0.0)
+    over = jnp.maximum(jnp.abs(fs) - limit, -fn - t_cap)
+    scale = jnp.where(sub.free, block_scale(model, sub, ev), 0.0)
+    scale = jnp.maximum(jnp.maximum(scale[a], scale[b]), model.f_ref * 1e-3)
+    excess = jnp.where(active & ~bonded & (ev["state"] != OPEN), jnp.maximum(over, 0.0) / scale,
+                       0.0)
+    return dict(overlap=jnp.max(depth, initial=0.0),
+                overlap_rel=jnp.max(depth / size, initial=0.0),
+                excess=jnp.max(excess, initial=0.0))
+
+
+def substep(model: Model, state: State, loads: Loads):
+    """Detect contacts, iterate to equilibrium at fixed geometry, commit the motion.
+
+    ``need["new_failures"]`` says whether a spring failed (first slipped or
+    opened) in this sub-step: it then loses its cohesion and tensile strength,
+    which the law applies from the next sub-step on, so the increment cannot
+    end here (a slot that failed would be reported with its intact strength).
+    """
+    mdl, sub, st0, pairs, need = prepare_substep(model, state, loads)
+    return newton_and_commit(mdl, state, sub, st0, pairs, need)
+
+
+def newton_and_commit(mdl: Model, state: State, sub: Sub, st0, pairs, need):
+    """The rest of :func:`substep` once contacts are detected: Newton, then commit."""
+    du, ev, c = _newton(mdl, sub, st0)
+    new_state, balance, snapshot = commit_substep(mdl, state, sub, pairs, du, ev)
+    need = dict(need, new_failures=jnp.any(new_state.failed.reshape(-1) & ~sub.failed))
+    return new_state, du, c, need, balance, snapshot

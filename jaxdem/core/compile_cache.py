@@ -1,0 +1,390 @@
+"""Compiled programs kept per shape: the registry, its bound, compile times, XLA options,
+and the programs stored on disk.
+
+Owns :func:`compiled_program` (a jitted function compiled once per argument shapes
+and static settings, least recently used dropped beyond :data:`MAX_COMPILED`),
+:data:`COMPILE_TIMES` and :data:`CPU_COMPILER_OPTIONS`. Keys are the jitted
+function objects themselves, so a program is found again wherever its
+function lives.
+
+Programs stored on disk (:func:`on_disk`): JAX's persistent compilation cache
+keys a program on its lowered text, so a warm run still traces and lowers
+it (0.7-1.6 s of a 2-3 s run). A function named with :func:`on_disk` is also
+kept as a serialised executable in ``programs/`` of the compilation cache
+directory, under a key made of everything that decides the program without
+tracing it: the source of the jaxdem package, the JAX and jaxlib versions, the
+backend, device and processor, the x64 flag, the argument tree (with its
+static fields: block count, solver, flags) and shapes, the static arguments and
+the XLA options. A later process loads it without tracing. Programs with host
+callbacks (the sparse solve) cannot be stored, and are not; nor is a program
+that JAX itself loaded from its cache rather than compiled (such an executable
+serialises without its kernels, and the copy fails when called: "Function ...
+not found"), so a program compiled before this store existed is stored the
+next time it is compiled afresh.
+
+Compilation beside other work: XLA compiles without Python's interpreter lock.
+:func:`prefetch` traces a program on the caller's thread and compiles it on a
+background one (the solver's increment, while the monitors' programs and the
+in-situ preload are compiled); :func:`compiled_program` collects it. :func:`while_compiling`
+runs host work (the command line's matplotlib warm-up) once a compilation starts.
+
+Data flow: knows nothing of the solver; the host driver (:mod:`jaxdem.solver`)
+and :mod:`jaxdem.batch` compile through it.
+"""
+
+from __future__ import annotations
+
+import collections
+import concurrent.futures
+import functools
+import hashlib
+import os
+import pickle
+import tempfile
+import threading
+import time
+import zlib
+from pathlib import Path
+
+import jax
+
+_COMPILED: collections.OrderedDict = collections.OrderedDict()
+_PENDING: dict = {}  # key -> Future of a program compiling in the background (prefetch)
+_BACKGROUND: list = []  # the one worker thread's executor, made on first use
+_HOST_TASKS: list = []  # host work waiting for the next compilation (while_compiling)
+_LOCK = threading.Lock()  # guards these and COMPILE_TIMES: the background threads use them
+
+MAX_COMPILED = 16
+"""Compiled increments kept in memory (least recently used dropped first)."""
+
+
+COMPILE_TIMES = {"lower_s": 0.0, "compile_s": 0.0}
+"""Time spent in :func:`compiled_program` by this process: tracing and lowering, and XLA
+compilation (or loading from the persistent cache), s."""
+
+
+CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+"""XLA options of jaxdem's large programs on a CPU. Without the new fusion emitters
+XLA compiled the increment in 0.6 to 0.7 of the time (10.3 -> 6.1 s dense, 10.7 ->
+7.7 s cg, 20 x 20 grid; 14 -> 9 s, incline) and the solve was no slower, with
+bitwise the same answers (BENCHMARKS.md, "Time to answer"). A jaxlib that does
+not know an option compiles without them."""
+
+
+QUICK_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
+"""XLA options added on a CPU for a program that runs briefly (``quick``): LLVM's
+optimisation level 0. It compiles the increment in 0.4-0.6 of the time and runs it
+2-3 times slower (BENCHMARKS.md, "Time to answer"), which wins wherever the solve
+takes less than the compilation saves: a single solve of a small scene, or a small
+batch."""
+
+QUICK_WORK = 2_000
+"""Largest work (blocks of the size class x increments, x samples for a batch) of a
+solve compiled ``quick``: the 20 x 20 grid (448 blocks, one increment) is below, the
+demo (487 blocks, five increments, 2 s of solve at full optimisation, 6 s at level 0)
+above. A solve with sensitivities, one of many in a back-analysis, is never quick."""
+
+
+def _options(quick: bool = False) -> dict:
+    """The XLA options of this backend's programs."""
+    if jax.default_backend() != "cpu":
+        return {}
+    return {**CPU_COMPILER_OPTIONS, **(QUICK_COMPILER_OPTIONS if quick else {})}
+
+
+def _xla_compile(lowered, quick: bool = False):
+    """``lowered.compile()``, with :data:`CPU_COMPILER_OPTIONS` (and the quick ones) on a CPU."""
+    options = _options(quick)
+    if options:
+        try:
+            return lowered.compile(compiler_options=options)
+        except jax.errors.JaxRuntimeError:  # an option this XLA does not have
+            pass
+    return lowered.compile()
+
+
+_ON_DISK: dict = {}
+
+
+def on_disk(name: str):
+    """Store the compiled programs of a jitted module-level function on disk (as ``name``).
+
+    Only for functions whose program is decided by the jaxdem source, the
+    arguments' tree and shapes and the static arguments (no closure over
+    values): the key knows nothing else.
+    """
+
+    def register(fn):
+        _ON_DISK[fn] = name
+        return fn
+
+    return register
+
+
+STORED_BYTES = 256 * 2**20
+"""Most bytes of stored programs kept on disk (least recently written dropped first):
+every change of the jaxdem source makes new keys."""
+
+_JAX_CACHE_HITS = [0]
+
+
+def _count_jax_cache_hits(event: str, **_) -> None:
+    if event == "/jax/compilation_cache/cache_hits":
+        _JAX_CACHE_HITS[0] += 1
+
+
+jax.monitoring.register_event_listener(_count_jax_cache_hits)
+
+
+@functools.lru_cache(maxsize=1)
+def _processor() -> str:
+    """The processor's model and features (a program compiled for one may not run on another)."""
+    try:
+        info = Path("/proc/cpuinfo").read_text().splitlines()
+    except OSError:
+        import platform
+
+        return platform.processor() or platform.machine()
+    keep = [line for line in info if line.startswith(("model name", "flags", "Features"))]
+    return hashlib.sha256("\n".join(sorted(set(keep))).encode()).hexdigest()
+
+
+@functools.lru_cache(maxsize=1)
+def _source_digest() -> str:
+    """sha256 of the jaxdem package's Python source, every subpackage (computed once a process)."""
+    h = hashlib.sha256()
+    root = Path(__file__).resolve().parents[1]  # jaxdem/, above jaxdem/core/
+    for path in sorted(root.rglob("*.py")):
+        h.update(str(path.relative_to(root)).encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()
+
+
+def _program_dir() -> Path | None:
+    """``programs/`` in the persistent compilation cache directory, when that is on."""
+    directory = jax.config.jax_compilation_cache_dir
+    if not (jax.config.jax_enable_compilation_cache and directory):
+        return None
+    return Path(directory) / "programs"
+
+
+def _disk_key(name, tree, leaves, static, options) -> str:
+    device = jax.devices()[0]
+    from jax._src.lib import version as jaxlib_version
+
+    parts = (name, _source_digest(), jax.__version__, str(jaxlib_version), device.platform,
+             device.device_kind, _processor(), bool(jax.config.jax_enable_x64), str(tree),
+             tuple((tuple(x.shape), str(x.dtype)) for x in leaves),
+             tuple(sorted(static.items())), tuple(sorted(options.items())))
+    return hashlib.sha256(repr(parts).encode()).hexdigest()
+
+
+def _load_program(path: Path):
+    """The compiled program stored at ``path``, or None (absent, unreadable, stale)."""
+    if not path.is_file():
+        return None
+    try:
+        from jax._src.lax.linalg import initialize_lapack
+        from jax.experimental import serialize_executable
+
+        # A loaded program calls LAPACK (the dense LU) without a lowering that
+        # would have set up its kernels first: without this it crashes.
+        initialize_lapack()
+        blob, in_tree, out_tree = pickle.loads(zlib.decompress(path.read_bytes()))
+        return serialize_executable.deserialize_and_load(blob, in_tree, out_tree)
+    except Exception:  # noqa: BLE001 - any failure: compile instead
+        return None
+
+
+def _store_program(path: Path, compiled) -> None:
+    """Write ``compiled`` to ``path`` (atomically), unless it holds host callbacks."""
+    unloaded = getattr(compiled._executable, "_unloaded_executable", None)
+    if unloaded is None or getattr(unloaded, "host_callbacks", None):
+        return
+    try:
+        from jax.experimental import serialize_executable
+
+        data = zlib.compress(pickle.dumps(serialize_executable.serialize(compiled)), 1)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=path.parent, delete=False) as f:
+            f.write(data)
+        os.replace(f.name, path)
+        _prune(path.parent, STORED_BYTES)
+    except Exception:  # noqa: BLE001 - a program that cannot be stored is compiled next time
+        return
+
+
+def _prune(directory: Path, limit: int) -> None:
+    """Delete the oldest stored programs until those left take at most ``limit`` bytes."""
+    files = sorted(directory.glob("*.pkl"), key=lambda f: f.stat().st_mtime, reverse=True)
+    total = 0
+    for f in files:
+        total += f.stat().st_size
+        if total > limit:
+            f.unlink(missing_ok=True)
+
+
+def _key(fn, args, static, quick):
+    leaves, tree = jax.tree.flatten(args)
+    key = (fn, tree, tuple((x.shape, str(x.dtype)) for x in leaves), tuple(sorted(static.items())),
+           quick)
+    return key, leaves, tree
+
+
+def _lower(fn, args, static, quick, leaves, tree):
+    """``fn``'s stored program for these shapes, or a function that compiles (and stores) it.
+
+    Returns (program, None) or (None, finish): the tracing and lowering, in
+    Python, are done here; ``finish()`` is the XLA compilation, which holds no
+    Python lock and may run on another thread.
+    """
+    t0 = time.perf_counter()
+    name, directory = _ON_DISK.get(fn), _program_dir()
+    path = None
+    if name is not None and directory is not None:
+        path = directory / f"{_disk_key(name, tree, leaves, static, _options(quick))}.pkl"
+    compiled = None if path is None else _load_program(path)
+    if compiled is not None:
+        _count(0.0, time.perf_counter() - t0)
+        return compiled, None
+    lowered = fn.lower(*args, **static)
+    t1 = time.perf_counter()
+    _count(t1 - t0, 0.0)
+
+    def finish():
+        _start_host_tasks()
+        t2 = time.perf_counter()
+        hits = _JAX_CACHE_HITS[0]
+        compiled = _xla_compile(lowered, quick)
+        # A hit on JAX's cache meanwhile (here or on another thread) may have been
+        # this program's: such a program is not stored (see the module's docstring).
+        if path is not None and _JAX_CACHE_HITS[0] == hits:
+            _store_program(path, compiled)
+        _count(0.0, time.perf_counter() - t2)
+        return compiled
+
+    return None, finish
+
+
+def while_compiling(task) -> None:
+    """Run ``task()`` on a background thread once the next program starts compiling.
+
+    XLA compiles without Python's global interpreter lock, so host work that
+    will be needed later costs no waiting then on a machine with a second core:
+    the command line imports matplotlib and loads its fonts for the figures
+    (0.3 s of a 3 s cold run of a small scene). Started earlier, the task
+    would only share the lock with the tracing; loading a stored program holds
+    the lock too (the figures' warm-up during a load made a warm run of the
+    incline slower: 1.78 -> 2.01 s). A task is run at most once; one
+    that never starts (every program was loaded) is dropped, and its work is
+    done where it is needed. Its errors are ignored for the same reason.
+    """
+    with _LOCK:
+        _HOST_TASKS.append(task)
+
+
+def _start_host_tasks() -> None:
+    with _LOCK:
+        tasks, _HOST_TASKS[:] = list(_HOST_TASKS), []
+    for task in tasks:
+        threading.Thread(target=_quietly, args=(task,), daemon=True,
+                         name="jaxdem-host-task").start()
+
+
+def _quietly(task) -> None:
+    try:
+        task()
+    except Exception:  # noqa: BLE001 - see while_compiling
+        pass
+
+
+def _count(lower_s: float, compile_s: float) -> None:
+    with _LOCK:
+        COMPILE_TIMES["lower_s"] += lower_s
+        COMPILE_TIMES["compile_s"] += compile_s
+
+
+def prefetch(fn, *args, quick: bool = False, **static) -> float:
+    """Trace ``fn`` for these shapes now and compile it on a background thread.
+
+    :func:`compiled_program` collects the program. XLA compiles without Python's
+    global interpreter lock, so a program that will be needed next (the
+    increment, while the in-situ preload is traced, compiled and run) costs no
+    waiting on a machine with a second core. Tracing stays on the caller's
+    thread: it needs the lock, and sharing it would only slow both. The
+    arguments need only have the shapes of the later call. Nothing is started
+    for a program already there. One program is prefetched at a time.
+
+    Returns the seconds this call spent (tracing, or loading a stored
+    program); 0.0 when the program was there already.
+    """
+    key, leaves, tree = _key(fn, args, static, quick)
+    with _LOCK:
+        if key in _COMPILED or key in _PENDING:
+            return 0.0
+    t0 = time.perf_counter()
+    try:
+        compiled, finish = _lower(fn, args, static, quick, leaves, tree)
+    except Exception:  # noqa: BLE001 - the call that needs the program reports it
+        return time.perf_counter() - t0
+    if compiled is not None:
+        _remember(key, compiled)
+        return time.perf_counter() - t0
+    with _LOCK:
+        if not _BACKGROUND:
+            _BACKGROUND.append(concurrent.futures.ThreadPoolExecutor(
+                max_workers=1, thread_name_prefix="jaxdem-compile"))
+        # One at a time: a program never collected (the preload grew the pair
+        # capacity, so the increment came with other shapes) is let go.
+        _PENDING.clear()
+        _PENDING[key] = _BACKGROUND[0].submit(finish)
+    return time.perf_counter() - t0
+
+
+def _remember(key, compiled) -> None:
+    """Keep ``compiled`` under ``key``; beyond :data:`MAX_COMPILED` drop the least recently used."""
+    with _LOCK:
+        _COMPILED[key] = compiled
+        dropped = len(_COMPILED) > MAX_COMPILED
+        if dropped:
+            _COMPILED.popitem(last=False)
+    if dropped:
+        jax.clear_caches()
+
+
+def compiled_program(fn, *args, quick: bool = False, **static):
+    """``fn`` (jitted) compiled for these argument shapes and static settings; compile time (s).
+
+    ``static`` holds ``fn``'s static keyword arguments; the compiled program is
+    called without them. ``quick`` adds :data:`QUICK_COMPILER_OPTIONS` on a CPU
+    (a program that will run briefly). The time returned is the time this
+    call waited: a program that :func:`prefetch` compiled in the background
+    while the caller worked costs only what was left of its compilation.
+
+    One compilation per shape: the samples of a sweep and the iterations of a
+    back-analysis reuse it. At most :data:`MAX_COMPILED` are kept: a compiled
+    increment holds about 35 MB and hundreds of memory mappings, and a process
+    that solved some hundreds of differently-shaped scenes ran out of mappings
+    and crashed in XLA's compiler. When one is dropped, JAX's own caches (the
+    small host-step programs) are cleared with it; the persistent compilation
+    cache on disk still serves a shape that comes back.
+    """
+    key, leaves, tree = _key(fn, args, static, quick)
+    t0 = time.perf_counter()
+    with _LOCK:
+        if key in _COMPILED:
+            _COMPILED.move_to_end(key)
+            return _COMPILED[key], 0.0
+        pending = _PENDING.pop(key, None)
+    compiled = None
+    if pending is not None:
+        try:
+            compiled = pending.result()
+        except Exception:  # noqa: BLE001 - compile here, where an error reaches the caller
+            compiled = None
+    if compiled is None:
+        compiled, finish = _lower(fn, args, static, quick, leaves, tree)
+        if compiled is None:
+            compiled = finish()
+    _remember(key, compiled)
+    return compiled, time.perf_counter() - t0

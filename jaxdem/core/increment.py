@@ -1,0 +1,196 @@
+"""The jitted increment: geometry sub-steps until equilibrium under one load step.
+
+One increment applies the loads of one load step (block forces, water table,
+installed bolts) and looks for static equilibrium with large displacements:
+
+  repeat (geometry sub-steps, ``lax.while_loop``):
+    detect contacts at the current geometry, carry each slot's history;
+    Newton iteration on the increment du of the free blocks
+    (``lax.while_loop``): trial spring forces from the gaps and the
+    committed shear forces, tension cut-off and Mohr-Coulomb, residual
+    R = F_ext + sum B^T f; solve (K_t + eps M) ddu = R, where K_t is the
+    tangent of the current states (open: none; slipping: normal spring only,
+    which keeps K_t symmetric) and eps M a small pseudo-mass;
+    the step is shortened so that no block travels more than
+    ``step_length`` (nor more than a quarter of its own radius) in one
+    sub-step;
+    move and rotate the blocks by du (exact rigid motion), commit the
+    spring forces and states.
+  until a sub-step converges (every free block's |R| <= tol times its own
+  force scale, no state change) with a negligible du, or a block has
+  travelled ``max_displacement`` (mechanism).
+
+Owns :func:`increment` and :func:`increment_tangent` (jitted), the loop of
+sub-steps :func:`substeps_to_equilibrium` that sets the :class:`jaxdem.core.status.Status` of
+the increment, and :func:`_joint_motion` (largest joint slip and opening).
+
+Data flow: takes one sub-step from :mod:`jaxdem.core._substep` (and its
+derivatives from :mod:`jaxdem.core.sensitivities`) and the tolerances of
+:mod:`jaxdem.core.status`; the host driver (:mod:`jaxdem.solver`) and
+:mod:`jaxdem.batch` compile and call it.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from jaxdem.core._substep import substep
+from jaxdem.core.compile_cache import on_disk
+from jaxdem.core.kinematics import block_travel, rotate_vectors
+from jaxdem.core.sensitivities import SNAPSHOT_FLOATS, substep_tangent
+from jaxdem.core.state import Loads, Model, State
+from jaxdem.core.status import (
+    IMBALANCE_FACTOR,
+    OVERLAP_TOL,
+    STRENGTH_TOL,
+    Status,
+    global_imbalance_jax,
+)
+
+
+@on_disk("increment")
+@jax.jit
+def increment(model: Model, state: State, loads: Loads):
+    """One load increment: geometry sub-steps until equilibrium under ``loads``.
+
+    Returns (state, info): info holds ``status`` (a Status value), ``iterations``
+    (Newton iterations), ``substeps``, ``residual`` (relative), ``travel``
+    (N,) path length of each block in this increment (m), ``balance``, the
+    final contact ``snapshot`` and ``approximate`` (a sub-step ended without
+    equilibrium, cut by the step length: see :func:`increment_tangent`).
+    """
+    return substeps_to_equilibrium(model, state, loads)
+
+
+@on_disk("increment_tangent")
+@jax.jit
+def increment_tangent(model: Model, state: State, loads: Loads, tangents: dict):
+    """:func:`increment` with forward-mode sensitivities of the state to p parameters.
+
+    ``tangents`` holds ``model`` ({field: (p, ...)} for
+    :data:`jaxdem.core.sensitivities.SMOOTH_MODEL`),
+    ``loads`` ({field: (p, ...)} for :data:`jaxdem.core.sensitivities.LOAD_FLOATS`) and ``state``
+    ({field: (p, ...)} for :data:`jaxdem.core.sensitivities.STATE_FLOATS`): the derivatives of those
+    inputs with respect to each parameter. ``info`` then also holds ``dstate``,
+    the derivatives of the new state, and ``dsnapshot``, those of the final
+    contact snapshot.
+
+    Each sub-step that ends in equilibrium, R(du*; geometry, history,
+    theta) = 0, is differentiated implicitly with its contact states held
+    (stick, slip, open and the bolts' states as found): du*' = K^-1 dR/dtheta,
+    with K = -dR/d(du) the exact tangent of the held states (unsymmetric where
+    slots slip). Geometry, detection and the committed history are chained
+    through exactly, so the result is the derivative of the discrete solution
+    wherever no state changes under a small change of theta. A sub-step cut
+    short by the step length (a large motion on the way to equilibrium) is
+    held fixed, and ``info["approximate"]`` says that one was.
+    """
+    return substeps_to_equilibrium(model, state, loads, tangents)
+
+
+_substep_once = jax.jit(substep)
+"""``substep`` behind a jit of its own: traced once for its abstract arguments (the
+loop's shapes and its body share that trace; XLA inlines the call)."""
+
+
+def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=None, skip=None):
+    """Geometry sub-steps until equilibrium; with ``tangents``, their sensitivities too.
+
+    ``skip`` (a bool scalar) returns ``state`` untouched: a batch member that has
+    already failed, or one that need not be redone, costs no iterations.
+    """
+    N = model.n_blocks
+    dtype = state.verts.dtype
+    # The shapes of the balance and snapshot carried by the loop. ``substep`` is
+    # jitted so that this trace is the one the loop body uses, not a second one.
+    _, _, _, _, balance0, snap0 = jax.eval_shape(_substep_once, model, state, loads)
+    zeros_like = lambda t: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), t)  # noqa: E731
+
+    def cond(c):
+        return c["status"] < 0
+
+    def body(c):
+        if tangents is None:
+            st_new, du, newton, need, balance, snap = _substep_once(model, c["state"], loads)
+        else:
+            (st_new, du, newton, need, balance, snap), (dstate, dsnap) = substep_tangent(
+                model, c["state"], loads, tangents["model"], c["dstate"], tangents["loads"])
+        overflow = (need["pairs"] > state.capacity) | need["cell_full"]
+        travel = c["travel"] + block_travel(model, du)
+        small = jnp.max(block_travel(model, du)) <= model.touch_tol
+        stuck = jnp.where(newton["converged"] | newton["clipped"], 0, c["stuck"] + 1)
+        substeps = c["substeps"] + 1
+        # The first outcome that holds ends the increment; -1 goes on. An
+        # equilibrium counts only if it is admissible (no overlap, no law broken,
+        # the whole in balance): else the status says which check failed.
+        done = newton["converged"] & small & ~need["new_failures"]
+        status = jnp.select(
+            [overflow, ~newton["finite"], done & (balance["overlap_rel"] > OVERLAP_TOL),
+             done & (balance["excess"] > STRENGTH_TOL),
+             done & (global_imbalance_jax(balance) > IMBALANCE_FACTOR * model.tol), done,
+             jnp.max(travel) > model.max_displacement,
+             (stuck >= 3) | (substeps >= model.max_substeps)],
+            [s.code for s in (Status.CAPACITY_OVERFLOW, Status.NON_FINITE, Status.OVERLAP,
+                              Status.LAW_VIOLATION, Status.IMBALANCE, Status.CONVERGED,
+                              Status.MECHANISM, Status.ITERATION_LIMIT)],
+            -1)
+        keep = overflow | ~newton["finite"]
+        hold = lambda old, new: jax.tree.map(lambda o, n: jnp.where(keep, o, n), old, new)  # noqa: E731
+        out = dict(state=hold(c["state"], st_new), status=status, substeps=substeps, stuck=stuck,
+                   iterations=c["iterations"] + newton["it"], travel=travel,
+                   residual=newton["rnorm"], balance=balance, snapshot=snap,
+                   pairs_needed=jnp.maximum(c["pairs_needed"], need["pairs"]),
+                   cell_full=c["cell_full"] | need["cell_full"],
+                   approximate=c["approximate"] | ~newton["converged"])
+        if tangents is not None:
+            out.update(dstate=hold(c["dstate"], dstate), dsnapshot=dsnap)
+        return out
+
+    status0 = jnp.array(-1) if skip is None else jnp.where(skip, Status.CONVERGED.code, -1)
+    init = dict(state=state, status=status0, substeps=jnp.array(0), stuck=jnp.array(0),
+                iterations=jnp.array(0), travel=jnp.zeros(N, dtype),
+                residual=jnp.array(jnp.inf, dtype), balance=zeros_like(balance0),
+                snapshot=zeros_like(snap0), pairs_needed=jnp.array(0), cell_full=jnp.array(False),
+                approximate=jnp.array(False))
+    if tangents is not None:
+        init["dstate"] = tangents["state"]
+        p = jax.tree.leaves(tangents["state"])[0].shape[0]
+        init["dsnapshot"] = {k: jnp.zeros((p,) + snap0[k].shape, dtype) for k in SNAPSHOT_FLOATS}
+    c = jax.lax.while_loop(cond, body, init)
+    info = {k: c[k] for k in ("status", "substeps", "iterations", "travel", "residual",
+                              "balance", "snapshot", "pairs_needed", "cell_full", "approximate")}
+    info["joints"] = _joint_motion(model, state, c["state"], c["snapshot"])
+    if tangents is not None:
+        info.update(dstate=c["dstate"], dsnapshot=c["dsnapshot"])
+    return c["state"], info
+
+
+def _joint_motion(model: Model, start: State, end: State, snap) -> dict:
+    """Largest joint slip and opening (m) of an increment, and the blocks where they are.
+
+    At each joint contact of the final geometry (open or closed, walls included,
+    intact bonds not), the relative displacement over the increment of the two
+    blocks' material points now at the contact point: its tangential part is the
+    slip, its normal part the opening (positive apart). ``slip_rel`` is the slip
+    relative to the smaller block's size, which the command line warns about
+    above :data:`jaxdem.core.status.LARGE_SLIP`.
+    """
+    p, n = snap["point"], snap["normal"]
+    t = jnp.stack([-n[:, 1], n[:, 0]], axis=1)
+
+    def moved(i):
+        back = rotate_vectors(p - end.centroid[i], -(end.rot[i] - start.rot[i]))
+        return p - (start.centroid[i] + back)
+
+    a, b = snap["a"], snap["b"]
+    rel = moved(a) - moved(b)
+    joint = snap["joint"]
+    slip = jnp.where(joint, jnp.abs(jnp.sum(rel * t, axis=1)), 0.0)
+    opening = jnp.where(joint, jnp.sum(rel * n, axis=1), 0.0)
+    size = jnp.where(model.free, model.radius, jnp.inf)
+    size = jnp.minimum(size[a], size[b])
+    size = jnp.where(jnp.isfinite(size), size, 1.0)
+    i, j = jnp.argmax(slip), jnp.argmax(opening)
+    return dict(slip=slip[i], slip_rel=slip[i] / size[i], slip_blocks=jnp.stack([a[i], b[i]]),
+                opening=jnp.maximum(opening[j], 0.0), opening_blocks=jnp.stack([a[j], b[j]]))

@@ -1,0 +1,162 @@
+"""Kinematics of the blocks: rigid motion, rotation, constant strain, points and anchors.
+
+Owns the maps from a block's generalised displacement (ux, uy, theta[, eps_x,
+eps_y, gamma_xy]) to the motion of its points: :func:`point_row` and
+:func:`b_rows` (the rows of B), :func:`strain_times`, :func:`rotate_vectors`,
+:func:`move_blocks` (the exact motion of a whole increment), :func:`bolt_geometry`
+and :func:`bolt_length_after` (bolt anchors), :func:`block_travel`, and the gather and
+scatter between slots and blocks. Pure jax.numpy on fixed shapes; no laws.
+
+Data flow: takes the device pytrees of :mod:`jaxdem.core.state`; used by the spring
+forces (:mod:`jaxdem.core._springs`), the linear solves, the sub-step, the loads,
+the driver, and by :mod:`jaxdem.results` (monitors, bolt anchors).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from jaxdem.core.state import Model, State
+
+
+def cross(r, v):
+    return r[..., 0] * v[..., 1] - r[..., 1] * v[..., 0]
+
+
+def point_row(r, v, ndof=3):
+    """Row mapping a block's (u, theta[, eps_x, eps_y, gamma_xy]) to v . displacement of point r.
+
+    The displacement of a point at r from the centroid is u + theta x r + E r,
+    E = [[eps_x, gamma/2], [gamma/2, eps_y]] for a deformable (constant-strain)
+    block. The same row maps a point force v to the block's generalised force.
+    """
+    cols = [v, cross(r, v)[..., None]]
+    if ndof == 6:
+        cols.append(jnp.stack([v[..., 0] * r[..., 0], v[..., 1] * r[..., 1],
+                               0.5 * (v[..., 0] * r[..., 1] + v[..., 1] * r[..., 0])], -1))
+    return jnp.concatenate(cols, axis=-1)
+
+
+def strain_times(e, r):
+    """E r for strains e = (eps_x, eps_y, gamma_xy) (engineering shear), broadcasting."""
+    return jnp.stack([e[..., 0] * r[..., 0] + 0.5 * e[..., 2] * r[..., 1],
+                      0.5 * e[..., 2] * r[..., 0] + e[..., 1] * r[..., 1]], -1)
+
+
+def b_rows(free, a, b, point_a, point_b, direction, centroid, ndof=3):
+    """Rows of B mapping (du_a, du_b) to the relative displacement along ``direction``.
+
+    v . disp_a(r_a) - v . disp_b(r_b), r_a = point_a - c_a, r_b = point_b - c_b
+    (the same point for a contact, the two anchors for a bolt), with
+    disp from :func:`point_row`. Parts of blocks without degrees of freedom are
+    zeroed. Returns (M, 2 ndof).
+    """
+    ra, rb = point_a - centroid[a], point_b - centroid[b]
+    fa = free[a][:, None].astype(ra.dtype)
+    fb = free[b][:, None].astype(ra.dtype)
+    pa = point_row(ra, direction, ndof) * fa
+    pb = -point_row(rb, direction, ndof) * fb
+    return jnp.concatenate([pa, pb], axis=1)
+
+
+def gather_pairs(du, a, b):
+    return jnp.concatenate([du[a], du[b]], axis=1)
+
+
+def scatter_pairs(n_blocks, a, b, x):
+    """Sum (M, 2 D) row vectors into (N, D) block vectors."""
+    d = x.shape[1] // 2
+    return (jax.ops.segment_sum(x[:, :d], a, n_blocks)
+            + jax.ops.segment_sum(x[:, d:], b, n_blocks))
+
+
+def rotate_vectors(r, angle):
+    cos, sin = jnp.cos(angle), jnp.sin(angle)
+    return jnp.stack([cos * r[..., 0] - sin * r[..., 1], sin * r[..., 0] + cos * r[..., 1]], -1)
+
+
+def _rotate_tensor(v, angle):
+    """(x, y, xy) components of a symmetric tensor rotated by ``angle`` (tensor shear)."""
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    xx, yy, xy = v[..., 0], v[..., 1], v[..., 2]
+    return jnp.stack([c * c * xx + s * s * yy - 2 * c * s * xy,
+                      s * s * xx + c * c * yy + 2 * c * s * xy,
+                      c * s * (xx - yy) + (c * c - s * s) * xy], -1)
+
+
+def move_blocks(model: Model, state: State, du, stress=None):
+    """Move every block by du: exact rigid motion (ux, uy, theta) about its centroid.
+
+    Positions are the start geometry (``model.verts0``, ``model.centroid0``)
+    moved by the accumulated displacement and rotation, so that round-off
+    does not pile up over many load steps: in float32 the move of one step of
+    a thousand is below the resolution of a coordinate, and summing the moves
+    into the coordinates lost a few percent of the displacement.
+
+    A deformable block is first strained by (eps_x, eps_y, gamma_xy) about its
+    centroid (which stays its centroid); its strain and ``stress`` (the new
+    stress, tension positive) then turn with the block.
+    """
+    th = du[:, 2]
+    u = state.u + du[:, :2]
+    rot = state.rot + th
+    centroid = model.centroid0 + u
+    strain, new_stress = state.strain, state.stress
+    if du.shape[1] == 6:
+        e = du[:, 3:]
+        r = state.verts - state.centroid[:, None, :]
+        r = r + strain_times(e[:, None, :], r)
+        tensor = lambda v: v * jnp.array([1.0, 1.0, 0.5], v.dtype)  # noqa: E731
+        engineering = lambda v: v * jnp.array([1.0, 1.0, 2.0], v.dtype)  # noqa: E731
+        strain = engineering(_rotate_tensor(tensor(state.strain + e), th))
+        new_stress = _rotate_tensor(stress, th)
+        verts = centroid[:, None, :] + rotate_vectors(r, th[:, None])
+    else:
+        r0 = model.verts0 - model.centroid0[:, None, :]
+        verts = centroid[:, None, :] + rotate_vectors(r0, rot[:, None])
+    return dataclasses.replace(state, verts=verts, centroid=centroid, u=u, rot=rot,
+                               strain=strain, stress=new_stress)
+
+
+def bolt_geometry(model: Model, state: State):
+    """Bolt rows: anchors at their current positions, direction from anchor 1 to anchor 2."""
+    i, j = model.bolt_blocks[:, 0], model.bolt_blocks[:, 1]
+    p1 = state.centroid[i] + rotate_vectors(model.bolt_offsets[:, 0], state.rot[i])
+    p2 = state.centroid[j] + rotate_vectors(model.bolt_offsets[:, 1], state.rot[j])
+    d = p2 - p1
+    e = d / jnp.maximum(jnp.linalg.norm(d, axis=1, keepdims=True), 1e-300)
+    # Elongation = e . (disp of anchor 2 - disp of anchor 1): anchor 2 is "a".
+    return dict(a=j, b=i, point_a=p2, point_b=p1, e=e)
+
+
+def bolt_length_after(ndof, d0, ra, rb, x):
+    """Current anchor-to-anchor length of one bolt after the move x = (du_a, du_b) (m).
+
+    ``d0`` = anchor a - anchor b at the sub-step's geometry, ``ra``, ``rb`` the anchors
+    from their blocks' centroids. Exact rigid motion (rotation by du[2], and for a
+    deformable block its strain first), as :func:`move_blocks` applies it: the bolt's force
+    comes from its actual elongation at any displacement, not from a sum of
+    linearised increments.
+    """
+    def moved(u, r):
+        if ndof == 6:
+            r_new = r + strain_times(u[3:], r)
+        else:
+            r_new = r
+        return u[:2] + rotate_vectors(r_new, u[2]) - r
+
+    d = d0 + moved(x[:ndof], ra) - moved(x[ndof:], rb)
+    # The anchors are distinct (the scene refuses a bolt of zero length); the floor
+    # only keeps sqrt's derivative finite.
+    return jnp.sqrt(jnp.maximum(jnp.sum(d * d), jnp.finfo(d.dtype).tiny))
+
+
+def block_travel(model: Model, du):
+    """Largest vertex displacement of each block for an increment du (m), bounded above."""
+    spin = jnp.abs(du[:, 2])
+    if model.ndof == 6:
+        spin = spin + jnp.sum(jnp.abs(du[:, 3:]), axis=1)
+    return jnp.sqrt(du[:, 0] ** 2 + du[:, 1] ** 2) + spin * model.radius

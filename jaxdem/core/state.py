@@ -1,0 +1,280 @@
+"""Device data: the model (what does not change in a solve) and the state (what does).
+
+Both are frozen dataclasses registered as JAX pytrees. Array fields are leaves;
+sizes and switches that fix the compiled program are static (``meta``) fields,
+so changing one of them recompiles, which is how capacities grow.
+
+Shapes use these letters:
+  N  blocks, rock blocks first, then rigid boundary walls
+  V  vertices per block (padded; ``nv`` holds the real count)
+  P  capacity of the candidate pair list (grows on overflow)
+  J  joints
+  S = P * 2 * V  spring slots: for pair (a, b), a < b, slot (p, 0, v) is vertex v
+     of a against an edge of b and slot (p, 1, v) is vertex v of b against an
+     edge of a. A slot's identity (pair, side, vertex) is its stable key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+# Contact spring states.
+OPEN, STICK, SLIP = 0, 1, 2
+
+# Block kinds: rock blocks carry material stiffness; walls are rigid boundaries.
+ROCK, WALL_FIXED, WALL_ROLLER = 0, 1, 2
+
+
+def _pytree(data: list[str], meta: list[str]):
+    def wrap(cls):
+        return jax.tree_util.register_dataclass(cls, data_fields=data, meta_fields=meta)
+
+    return wrap
+
+
+@_pytree(
+    data=[
+        "nv", "vmask", "free", "kind", "kn_inv", "ks_inv", "area", "radius", "f_ext",
+        "edge_joint", "joint_kn", "joint_ks", "joint_c", "joint_t", "joint_tanphi",
+        "big", "pseudo_mass", "f_ref", "tol", "step_length", "margin", "touch_tol",
+        "max_displacement", "span_tol", "cos_parallel", "corner_share", "max_iterations",
+        "max_substeps",
+        "joint_intact", "gamma_w", "bolt_blocks", "bolt_offsets", "bolt_k", "bolt_cap",
+        "bolt_comp", "bolt_pullout", "cell_D", "bond_penalty", "verts0", "centroid0",
+    ],
+    meta=["n_blocks", "n_vertices", "n_big", "use_cells", "cell_capacity", "linear_solver",
+          "n_bolts", "has_water", "ndof", "lanes"],
+)
+@dataclasses.dataclass(frozen=True)
+class Model:
+    """Constant data of a solve (host-built, device-resident).
+
+    N, V and J are size classes (:func:`jaxdem.core.model.block_bucket`,
+    :func:`jaxdem.core.model.bucket`), so that scenes of similar size share their
+    compiled programs: the rock blocks come first, then the walls, then at least
+    one dead block (a copy of block 0, never alive in the State, never free, in
+    no contact); vertices past a block's own repeat its first; joint rows past
+    the scene's are unused.
+
+    Attributes:
+      nv: (N,) int32 vertex count of each block.
+      vmask: (N, V) bool, real vertices.
+      free: (N,) bool, block has degrees of freedom (not fixed, not a wall).
+      kind: (N,) int32, ROCK, WALL_FIXED or WALL_ROLLER.
+      kn_inv, ks_inv: (N,) 1/kPa, inverse intact stiffness 1/kn_i = (1 - nu^2)/E and
+        1/ks_i = (1 + nu)/E (paper eqs. 3-4); 0 for rigid walls.
+      area: (N,) m2. radius: (N,) m, largest centroid-to-vertex distance.
+      f_ext: (N, D) external load at load factor 1 (kN/m, kN/m, kN m/m about
+        the centroid, then for deformable blocks the work-conjugates of the
+        three strains, kN m/m): self-weight and boundary tractions.
+      edge_joint: (N, V) int32, joint of the discontinuity each edge lies on, -1 if none.
+      joint_kn, joint_ks: (J,) kPa/m. joint_c, joint_t: (J,) kPa.
+      joint_tanphi: (J,) tan of the friction angle.
+      big: (n_big,) int32, blocks paired with every block in the broad phase
+        (walls and blocks much larger than the median); the rest go in cells.
+        Filled up to its size class with the last (dead) block.
+      pseudo_mass: (N, D) diagonal regularisation eps * k_ref * (1, 1, r_g^2, ...):
+        changes the path of the iteration, never a converged equilibrium.
+      f_ref: scalar kN/m, force scale of the convergence test.
+      tol: relative residual tolerance. step_length: m, largest travel of a
+        block in one geometry sub-step. margin: m, contact detection distance
+        (open springs within it may close during a sub-step). touch_tol: m,
+        gap under which faces are in contact. max_displacement: m, travel in
+        one increment beyond which a block is moving (a mechanism). span_tol: m,
+        how far past the end of a face a vertex still bears on it (0.01 L).
+      cos_parallel: faces closer than this cosine to anti-parallel are an
+        edge-to-edge contact. corner_share: effective length of a
+        corner-to-edge point as a fraction of its shorter adjacent edge.
+      max_iterations: Newton iterations per geometry sub-step.
+      max_substeps: geometry sub-steps per increment.
+      joint_intact: (J,) bool, the entry is an intact-rock bond (no water on it).
+      gamma_w: scalar kN/m3, unit weight of water (0 when the scene has none).
+      bolt_blocks: (B, 2) int32, blocks holding the two anchors of each bolt.
+      bolt_offsets: (B, 2, 2) m, anchors relative to those centroids at rotation 0.
+      bolt_k: (B,) kN/m per m, axial stiffness / spacing.
+      bolt_cap: (B,) kN/m, min(yield force, anchor capacity) / spacing: the tension
+        the bolt carries at most.
+      bolt_comp: (B,) kN/m, compression / spacing: the compression it carries at
+        most (0: none, a cable that goes slack).
+      bolt_pullout: (B,) bool, the anchor capacity governs (pull-out, else yield).
+      cell_D: (N, 3, 3) kPa, plane-strain elasticity of each deformable block
+        (sigma = D (eps_x, eps_y, gamma_xy)); (0, 3, 3) when blocks are rigid.
+      bond_penalty: scalar, stiffness of an intact-rock bond between deformable
+        blocks as a multiple of the Hamajima-Kawai spring (eqs. 3-7).
+      verts0: (N, V, 2) m, vertices at the start; centroid0: (N, 2) m, their
+        centroids. A rigid block's position is this reference moved by its
+        accumulated (u, rot), never a sum of many small moves: in float32 a
+        load step's move can be below the resolution of a coordinate.
+      n_blocks, n_vertices, n_big, cell_capacity, n_bolts: static sizes.
+      ndof: degrees of freedom per block, D: 3 (rigid: ux, uy, rotation) or 6
+        (deformable, constant strain: also eps_x, eps_y, gamma_xy).
+      use_cells: grid broad phase (else all pairs).
+      linear_solver: "dense" (LU), "sparse" (SciPy's sparse LU, on the
+        host) or "cg" (matrix-free conjugate gradients); "auto" is resolved by
+        :func:`jaxdem.core.model.linear_solver_for`.
+      has_water: the scene has a water table (else no pore-pressure code is compiled).
+      lanes: the name of the vmap axis when samples are solved side by side
+        (:mod:`jaxdem.batch`), else None: a Newton iteration then skips its
+        factorisation only when every member of the batch has converged.
+    """
+
+    nv: jax.Array
+    vmask: jax.Array
+    free: jax.Array
+    kind: jax.Array
+    kn_inv: jax.Array
+    ks_inv: jax.Array
+    area: jax.Array
+    radius: jax.Array
+    f_ext: jax.Array
+    edge_joint: jax.Array
+    joint_kn: jax.Array
+    joint_ks: jax.Array
+    joint_c: jax.Array
+    joint_t: jax.Array
+    joint_tanphi: jax.Array
+    big: jax.Array
+    pseudo_mass: jax.Array
+    f_ref: jax.Array
+    tol: jax.Array
+    step_length: jax.Array
+    margin: jax.Array
+    touch_tol: jax.Array
+    max_displacement: jax.Array
+    span_tol: jax.Array
+    cos_parallel: jax.Array
+    corner_share: jax.Array
+    max_iterations: jax.Array
+    max_substeps: jax.Array
+    joint_intact: jax.Array
+    gamma_w: jax.Array
+    bolt_blocks: jax.Array
+    bolt_offsets: jax.Array
+    bolt_k: jax.Array
+    bolt_cap: jax.Array
+    bolt_comp: jax.Array
+    bolt_pullout: jax.Array
+    cell_D: jax.Array
+    bond_penalty: jax.Array
+    verts0: jax.Array
+    centroid0: jax.Array
+    n_blocks: int
+    n_vertices: int
+    n_big: int
+    use_cells: bool
+    cell_capacity: int
+    linear_solver: str
+    n_bolts: int = 0
+    has_water: bool = False
+    ndof: int = 3
+    lanes: str | None = None
+
+
+@_pytree(
+    data=["verts", "centroid", "u", "rot", "alive", "pairs", "fs", "fn", "fn0", "failed", "edge",
+          "cstate", "present", "bolt_force", "bolt_state", "bolt_rest", "strain", "stress"],
+    meta=["capacity"],
+)
+@dataclasses.dataclass(frozen=True)
+class State:
+    """What changes during a solve.
+
+    Attributes:
+      verts: (N, V, 2) m, current vertex positions (padding repeats vertex 0).
+      centroid: (N, 2) m, current centroids.
+      u: (N, 2) m, centroid displacement since the start.
+      rot: (N,) rad, rotation since the start (counter-clockwise positive).
+      alive: (N,) bool, the block has not been excavated.
+      pairs: (P, 2) int32 candidate pairs (a < b); empty entries hold (N, N).
+      fs: (P, 2, V) kN/m, shear spring force along the contacted edge's tangent.
+      fn: (P, 2, V) kN/m, effective normal force (compression positive), for output.
+      fn0: (P, 2, V) kN/m, initial (in-situ) normal force of the spring at zero gap.
+      failed: (P, 2, V) bool, the contact lost its cohesion and tensile strength.
+      edge: (P, 2, V) int32, contacted edge of the other block.
+      cstate: (P, 2, V) int32, OPEN, STICK or SLIP.
+      present: (P, 2, V) bool, the slot was within the detection margin.
+      bolt_force: (B,) kN/m, axial bolt force (tension positive).
+      bolt_state: (B,) int32, 0 elastic, 1 yielded, 2 pulled out, 3 slack (a bolt
+        that carries no compression, shortened), 4 yielded in compression.
+      bolt_rest: (B,) m, length at which the bolt carries no force: its length
+        when installed, plus its plastic elongation (yield, pull-out) less its
+        plastic shortening; 0 until installed.
+      strain: (N, 3) strain of deformable blocks since the start (eps_x, eps_y,
+        gamma_xy; extension positive); zero for rigid blocks.
+      stress: (N, 3) kPa, stress of deformable blocks (sigma_x, sigma_y, tau_xy;
+        tension positive inside the solver): in-situ stress + D strain.
+      capacity: P, static.
+    """
+
+    verts: jax.Array
+    centroid: jax.Array
+    u: jax.Array
+    rot: jax.Array
+    alive: jax.Array
+    pairs: jax.Array
+    fs: jax.Array
+    fn: jax.Array
+    fn0: jax.Array
+    failed: jax.Array
+    edge: jax.Array
+    cstate: jax.Array
+    present: jax.Array
+    bolt_force: jax.Array
+    bolt_state: jax.Array
+    bolt_rest: jax.Array
+    strain: jax.Array
+    stress: jax.Array
+    capacity: int
+
+
+def empty_history(n_blocks: int, capacity: int, n_vertices: int, dtype) -> dict:
+    """Contact history arrays of a given capacity, all slots empty."""
+    shape = (capacity, 2, n_vertices)
+    # Made in NumPy and sent in one transfer: jnp.zeros would compile a small program
+    # for each shape and dtype at start-up.
+    return jax.device_put(dict(
+        pairs=np.full((capacity, 2), n_blocks, np.int32),
+        fs=np.zeros(shape, dtype),
+        fn=np.zeros(shape, dtype),
+        fn0=np.zeros(shape, dtype),
+        failed=np.zeros(shape, bool),
+        edge=np.zeros(shape, np.int32),
+        cstate=np.zeros(shape, np.int32),
+        present=np.zeros(shape, bool),
+    ))
+
+
+def grow_capacity(state: State, capacity: int) -> State:
+    """The same state with a larger pair capacity (history kept, new slots empty)."""
+    old = state.capacity
+    n_blocks = state.verts.shape[0]
+    new = empty_history(n_blocks, capacity, state.verts.shape[1], state.fs.dtype)
+    fields = {k: v.at[:old].set(getattr(state, k)) for k, v in new.items()}
+    return dataclasses.replace(state, capacity=capacity, **fields)
+
+
+@_pytree(data=["force", "water_x", "water_y", "water_scale", "bolt_active"], meta=[])
+@dataclasses.dataclass(frozen=True)
+class Loads:
+    """What the host applies in one increment.
+
+    Attributes:
+      force: (N, D) external load on each block (kN/m, kN/m, kN m/m about its
+        centroid; then the strain work-conjugates of deformable blocks):
+        self-weight, tractions, support pressure, and the part of the
+        excavated blocks' forces not yet released.
+      water_x, water_y: (W,) water table polyline (m); unused without water.
+      water_scale: scalar, fraction of the pore pressure applied (ramped with
+        self-weight while a scene without in-situ stress is loaded).
+      bolt_active: (B,) bool, the bolt is installed.
+    """
+
+    force: jax.Array
+    water_x: jax.Array
+    water_y: jax.Array
+    water_scale: jax.Array
+    bolt_active: jax.Array

@@ -1,0 +1,422 @@
+"""Geometric validation of a scene: polygons (simple, counter-clockwise, convex where
+blocks need it), overlaps between explicit blocks and with the domain, which joint a
+shared block face gets, coordinates the dtype resolves, the generated block count
+estimated before anything is generated, and ``Rock``, where the rock is (the domain less
+its openings, plus the explicit blocks) for points and segments that must lie in it.
+
+Host NumPy with :mod:`jaxdem.geometry`; reads records of :mod:`jaxdem.scene._schema`
+and raises ``SceneError`` naming the field. Used by the section parsers and by
+:func:`jaxdem.scene.parse_scene`, which decides the order of the checks.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from jaxdem import geometry
+from jaxdem.scene._fields import SceneError, fmt_point, read_vertices
+from jaxdem.scene._schema import Block, Domain, Excavation, Joint, SolverSettings
+
+MAX_BLOCKS = 500_000
+"""Most blocks a scene may generate (estimated from joint spacings and mesh size before
+anything is generated): 50 times the largest model benchmarked (10,464 blocks, 2 GB)."""
+
+MAX_POLYGON_POINTS = 1_000
+"""Most vertices in one polygon (checking a polygon for crossings costs n^2)."""
+
+MAX_OFFSET = {"float64": 1e9, "float32": 1e3}
+"""Coordinates may lie at most this many model sizes from (0, 0): beyond, the dtype resolves
+less than about 1e-7 (float64) or 1e-4 (float32) of the model's size, the order of the
+solver's contact tolerance (1e-6, float32 1e-4, of the block size)."""
+
+#: Two explicit blocks may overlap by at most this depth, relative to the smaller block's
+#: size sqrt(area) (depth = 2 area / perimeter of the overlap, the thickness of a sliver):
+#: coordinates rounded to 6 decimals (1e-6 m) pass for blocks of 0.1 m and larger. A
+#: deeper overlap is refused; an accepted one is a contact already compressed by it.
+OVERLAP_TOLERANCE = 1e-5
+
+
+def check_polygon(v: np.ndarray, path: str, *, convex: bool = True) -> None:
+    """Refuse repeated points, self-intersecting, degenerate, clockwise polygons and, when
+    ``convex``, 180-degree corners and reflex corners."""
+    n = len(v)
+    if n > MAX_POLYGON_POINTS:
+        raise SceneError(
+            path, f"too many vertices (got {n:,}; at most {MAX_POLYGON_POINTS:,}); simplify it"
+        )
+    diag = float(np.hypot(*(v.max(axis=0) - v.min(axis=0))))
+    tol = 1e-9 * diag
+    if geometry.has_repeated_points(v, tol):
+        diff = v[:, None, :] - v[None, :, :]
+        close = np.hypot(diff[..., 0], diff[..., 1]) <= tol
+        i, j = next((i, j) for i in range(n) for j in range(i + 1, n) if close[i, j])
+        raise SceneError(path, f"repeated point {fmt_point(v[i])} at vertices {i} and {j}")
+    # All points on one line: say "degenerate" rather than "self-intersecting".
+    centred = v - v.mean(axis=0)
+    _, _, vt = np.linalg.svd(centred, full_matrices=False)
+    thickness = float(np.ptp(centred @ vt[-1]))
+    if thickness <= 1e-12 * diag:
+        raise SceneError(
+            path, "degenerate polygon: all vertices lie on one line (zero or near-zero area)"
+        )
+    if geometry.self_intersects(v):
+        raise SceneError(path, "self-intersecting polygon: two of its edges cross or touch")
+    area = geometry.signed_area(v)
+    if abs(area) < 1e-12 * diag * diag:
+        raise SceneError(path, f"degenerate polygon: near-zero area ({area:.3g} m2)")
+    if area < 0.0:
+        raise SceneError(path, "vertices are clockwise; list them counter-clockwise")
+    if not convex:
+        return
+    s = geometry.corner_sines(v)
+    for k in range(n):
+        if abs(s[k]) <= 1e-9:
+            raise SceneError(
+                path,
+                f"degenerate vertex {k} {fmt_point(v[k])}: collinear with its neighbours "
+                "(180-degree corner); remove it",
+            )
+    for k in range(n):
+        if s[k] < 0.0:
+            raise SceneError(
+                path,
+                f"is not convex at vertex {k} {fmt_point(v[k])}; split it into convex blocks",
+            )
+
+
+def read_polygon(t: dict, key: str, path: str, far: tuple[float, str] | None = None) -> np.ndarray:
+    """A required simple CCW polygon field (may be non-convex), read-only. ``far``: (model
+    size, dtype) to refuse first a vertex too far away (that spoils the checks' tolerance)."""
+    if key not in t:
+        raise SceneError(f"{path}.{key}", "required field is missing")
+    v = read_vertices(t[key], f"{path}.{key}")
+    if far is not None:
+        k = int(np.argmax(np.max(np.abs(v), axis=1)))
+        check_far(v[k], f"{path}.{key}.{k}", *far)
+    check_polygon(v, f"{path}.{key}", convex=False)
+    v.setflags(write=False)
+    return v
+
+
+def overlap_depth(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """(area m2, depth m) of the overlap of two convex polygons; depth = 2 area / perimeter
+    of the overlap, the thickness of a sliver (0, 0 when they do not overlap)."""
+    clip = geometry.convex_clip(np.asarray(a, float), np.asarray(b, float))
+    if len(clip) < 3:
+        return 0.0, 0.0
+    area = abs(geometry.signed_area(clip))
+    perimeter = float(np.sum(np.hypot(*(np.roll(clip, -1, axis=0) - clip).T)))
+    return area, (2.0 * area / perimeter if perimeter > 0.0 else 0.0)
+
+
+def check_overlaps(blocks: tuple[Block, ...]) -> None:
+    """Refuse explicit blocks that overlap deeper than OVERLAP_TOLERANCE times the smaller
+    block's size sqrt(area)."""
+    if not blocks:
+        return
+    polys = [b.vertices for b in blocks]
+    areas = [geometry.signed_area(v) for v in polys]
+    pairs = geometry.find_overlapping_pairs(polys, 1e-9 * min(areas))
+    bad = []
+    for i, j in pairs:
+        a, depth = overlap_depth(polys[i], polys[j])
+        size = math.sqrt(min(areas[i], areas[j]))
+        if depth > OVERLAP_TOLERANCE * size:
+            bad.append((j, i, a, depth, size))
+    if bad:
+        j, i, a, depth, size = min(bad)
+        raise SceneError(
+            f"blocks.{j}",
+            f"overlaps blocks.{i} (area {a:.3g} m2): {depth:.3g} m deep, where up to "
+            f"{OVERLAP_TOLERANCE:g} of the smaller block's size ({OVERLAP_TOLERANCE * size:.3g} "
+            "m) is accepted",
+        )
+
+
+def _shared_faces(blocks: tuple[Block, ...], tol: float) -> list[tuple[int, int, np.ndarray,
+                                                                         np.ndarray]]:
+    """(i, j, p, q): blocks i < j share the segment p-q of a face (anti-parallel edges on
+    one line, overlapping by more than ``tol``)."""
+    out = []
+    boxes = np.array([geometry.bbox(b.vertices) for b in blocks]).reshape(-1, 4)
+    for i in range(len(blocks)):
+        near = np.nonzero((boxes[i + 1:, 0] <= boxes[i, 2] + tol)
+                          & (boxes[i, 0] <= boxes[i + 1:, 2] + tol)
+                          & (boxes[i + 1:, 1] <= boxes[i, 3] + tol)
+                          & (boxes[i, 1] <= boxes[i + 1:, 3] + tol))[0] + i + 1
+        va = blocks[i].vertices
+        for j in near:
+            vb = blocks[j].vertices
+            for a0, a1 in zip(va, np.roll(va, -1, axis=0), strict=True):
+                d = a1 - a0
+                L = float(np.hypot(*d))
+                t = d / L
+                n = np.array([-t[1], t[0]])
+                for b0, b1 in zip(vb, np.roll(vb, -1, axis=0), strict=True):
+                    if abs((b0 - a0) @ n) > tol or abs((b1 - a0) @ n) > tol:
+                        continue
+                    lo = max(0.0, min((b0 - a0) @ t, (b1 - a0) @ t))
+                    hi = min(L, max((b0 - a0) @ t, (b1 - a0) @ t))
+                    if hi - lo > tol and (b1 - b0) @ t < 0.0:
+                        out.append((i, int(j), a0 + lo * t, a0 + hi * t))
+    return out
+
+
+def _on_discontinuity(p: np.ndarray, q: np.ndarray, discs: tuple, tol: float) -> bool:
+    """Whether the segment p-q lies on a [[discontinuities]] line (as the model reads it)."""
+    for d in discs:
+        e = d.end - d.start
+        L = float(np.hypot(*e))
+        t = e / L
+        n = np.array([-t[1], t[0]])
+        if abs((p - d.start) @ n) <= tol and abs((q - d.start) @ n) <= tol:
+            sp, sq = (p - d.start) @ t, (q - d.start) @ t
+            if min(sp, sq) >= -tol and max(sp, sq) <= L + tol:
+                return True
+    return False
+
+
+def check_block_joints(blocks: tuple[Block, ...], discs: tuple, joints: dict,
+                        has_default: bool, default_joint: str, tol: float) -> None:
+    """Which joint each explicit block face gets must be explicit.
+
+    A face on a [[discontinuities]] line takes that line's joint; any other face takes its
+    block's ``joint``, else ``scene.default_joint``. With several joints, a block that
+    has neither and a face no line covers is ambiguous (refused). Two blocks whose joints
+    differ may share a face only where a line says which joint it is.
+    """
+    if not blocks:
+        return
+    if len(joints) > 1 and not has_default:
+        for i, b in enumerate(blocks):
+            if b.joint is not None:
+                continue
+            v = b.vertices
+            for k, (p, q) in enumerate(zip(v, np.roll(v, -1, axis=0), strict=True)):
+                if not _on_discontinuity(p, q, discs, tol):
+                    raise SceneError(
+                        "scene.default_joint",
+                        f"required when the scene has several joints ({', '.join(joints)}) "
+                        f"and explicit blocks: face {k} of blocks.{i} ({fmt_point(p)}-"
+                        f"{fmt_point(q)}) lies on no [[discontinuities]] line, so its joint "
+                        "is not given; set [scene] default_joint = NAME, or joint = NAME on "
+                        "the [[blocks]]",
+                    )
+    if len(joints) < 2 or all(b.joint is None for b in blocks):
+        return
+    own = [b.joint if b.joint is not None else default_joint for b in blocks]
+    for i, j, p, q in _shared_faces(blocks, tol):
+        if own[i] != own[j] and not _on_discontinuity(p, q, discs, tol):
+            which = {i: "joint" if blocks[i].joint is not None else "default_joint",
+                     j: "joint" if blocks[j].joint is not None else "default_joint"}
+            path = f"blocks.{j}.joint" if blocks[j].joint is not None else f"blocks.{i}.joint"
+            raise SceneError(
+                path,
+                f"blocks.{i} ({which[i]} {own[i]!r}) and blocks.{j} ({which[j]} {own[j]!r}) "
+                f"share the face {fmt_point(p)}-{fmt_point(q)} but their joints differ; put a "
+                "[[discontinuities]] line on that face to say which joint it is",
+            )
+
+
+def check_blocks_outside_domain(blocks: tuple[Block, ...], domain: Domain | None) -> None:
+    if domain is None or not blocks:
+        return
+    parts = geometry.convex_decompose(domain.outline, 0.0)
+    dbox = geometry.bbox(domain.outline)
+    for i, b in enumerate(blocks):
+        bb = geometry.bbox(b.vertices)
+        if bb[0] >= dbox[2] or dbox[0] >= bb[2] or bb[1] >= dbox[3] or dbox[1] >= bb[3]:
+            continue
+        a = sum(geometry.overlap_area(b.vertices, q) for q in parts)
+        if a > 1e-9 * geometry.signed_area(b.vertices):
+            raise SceneError(
+                f"blocks.{i}",
+                f"overlaps the domain (area {a:.3g} m2); explicit blocks lie outside it",
+            )
+
+
+def segment_touches_box(a: np.ndarray, b: np.ndarray, box: tuple, tol: float) -> bool:
+    xmin, ymin, xmax, ymax = box
+    for q in (a, b):
+        if xmin - tol <= q[0] <= xmax + tol and ymin - tol <= q[1] <= ymax + tol:
+            return True
+    corners = [(xmin, ymin), (xmax, ymin), (xmax, ymax), (xmin, ymax)]
+    return any(
+        geometry.segments_intersect(a, b, corners[k], corners[(k + 1) % 4], tol) for k in range(4)
+    )
+
+
+class Rock:
+    """Where the rock is: the domain less its excavations, plus the explicit blocks."""
+
+    def __init__(
+        self,
+        blocks: tuple[Block, ...],
+        domain: Domain | None,
+        excavations: tuple[Excavation, ...],
+        tol: float,
+    ) -> None:
+        self.blocks = blocks
+        self.boxes = np.array([geometry.bbox(b.vertices) for b in blocks]).reshape(-1, 4)
+        self.domain = domain
+        self.excavations = excavations
+        self.tol = tol
+
+    def excavation_at(self, q: np.ndarray) -> str | None:
+        """Name of the excavation with ``q`` strictly inside (beyond tol), else None."""
+        for e in self.excavations:
+            if geometry.point_in_polygon(q, e.vertices) and (
+                geometry.distance_to_boundary(q, e.vertices) > self.tol
+            ):
+                return e.name
+        return None
+
+    def contains(self, q: np.ndarray) -> bool:
+        tol = self.tol
+        b = self.boxes
+        near = np.nonzero(
+            (b[:, 0] - tol <= q[0])
+            & (q[0] <= b[:, 2] + tol)
+            & (b[:, 1] - tol <= q[1])
+            & (q[1] <= b[:, 3] + tol)
+        )[0]
+        if any(geometry.point_in_polygon(q, self.blocks[k].vertices, tol) for k in near):
+            return True
+        if self.domain is None or not geometry.point_in_polygon(q, self.domain.outline, tol):
+            return False
+        return self.excavation_at(q) is None
+
+    def touches(self, a: np.ndarray, b: np.ndarray) -> bool:
+        """Whether segment a-b meets a block or the domain (within 1e3 tol, as the model
+        finds faces on a boundary)."""
+        tol = 1e3 * self.tol
+        lo, hi = np.minimum(a, b) - tol, np.maximum(a, b) + tol
+        bx = self.boxes
+        near = np.nonzero(
+            (bx[:, 0] <= hi[0]) & (lo[0] <= bx[:, 2]) & (bx[:, 1] <= hi[1]) & (lo[1] <= bx[:, 3])
+        )[0]
+        polys = [self.blocks[k].vertices for k in near]
+        if self.domain is not None:
+            polys.append(self.domain.outline)
+        for v in polys:
+            if geometry.point_in_polygon(a, v, tol):
+                return True
+            edges = zip(v, np.roll(v, -1, axis=0), strict=True)
+            if any(geometry.segments_intersect(a, b, p, q, tol) for p, q in edges):
+                return True
+        return False
+
+    def where(self, q: np.ndarray) -> str:
+        """Why ``q`` is not in rock, for messages."""
+        name = self.excavation_at(q)
+        if name is not None and self.domain is not None:
+            return f"{fmt_point(q)} is inside excavation {name!r}, not in rock"
+        return f"{fmt_point(q)} is outside the rock"
+
+
+def check_block_count(
+    domain: Domain | None,
+    joints: dict[str, Joint],
+    excavations: tuple[Excavation, ...],
+    n_explicit: int,
+) -> None:
+    """Refuse a scene that would generate more than MAX_BLOCKS blocks, judged from an
+    estimate made before anything is generated (which would exhaust time or memory).
+
+    Per joint set: its trace lines across the domain and, with persistence < 1, its trace
+    ends (each cuts a block); per pair of sets: their crossings, area sin(angle) p1 p2 /
+    (s1 s2); a mesh: 2 triangles per square cell of mesh_size (graded: of mesh_max_size,
+    plus 4 perimeter / mesh_size along the excavations), 2 more per cell that a trace or
+    an excavation outline cuts. Within a factor 1.5 of the generated count on the examples.
+    """
+    if domain is None:
+        return
+    v = domain.outline
+    area = geometry.signed_area(v)
+    made: dict[str, float] = {}  # field path -> blocks it makes
+    sets = []  # (name, dip (rad), spacing, persistence, joint)
+    for name, j in joints.items():
+        if j.dip_deg is not None and j.spacing is not None:
+            sets.append((name, math.radians(j.dip_deg), j.spacing, j.persistence or 1.0, j))
+    traces = 0.0  # total trace length (m), about
+    for name, dip, spacing, persistence, j in sets:
+        d = np.array([math.cos(dip), math.sin(dip)])
+        lines = float(np.ptp(v @ np.array([-d[1], d[0]]))) / spacing
+        along = float(np.ptp(v @ d))
+        made[f"joints.{name}.spacing"] = lines
+        traces += lines * along * persistence
+        if math.isfinite(j.trace_length):
+            key = f"joints.{name}.{'gap' if j.gap is not None else 'spacing'}"
+            ends = 2.0 * lines * along / (j.trace_length + j.bridge_length)
+            made[key] = made.get(key, 0.0) + ends
+    for k, (na, dip_a, sa, pa, _) in enumerate(sets):
+        for nb, dip_b, sb, pb, _ in sets[k + 1:]:
+            key = f"joints.{na if sa <= sb else nb}.spacing"
+            made[key] += area * abs(math.sin(dip_a - dip_b)) * pa * pb / sa / sb
+    h, grown = domain.mesh_size, domain.mesh_max_size
+    if h is not None:
+        edges = [np.roll(e.vertices, -1, axis=0) - e.vertices for e in excavations]
+        perimeter = sum(float(np.sum(np.hypot(e[:, 0], e[:, 1]))) for e in edges)
+        if grown is not None and grown > h and excavations:
+            cells = area / grown / grown + 4.0 * perimeter / h
+        else:
+            cells = area / h / h
+        made["domain.mesh_size"] = 2.0 * (cells + (perimeter + traces) / h)
+    total = n_explicit + 1.0 + sum(made.values())
+    if total > MAX_BLOCKS:
+        path = max(made, key=lambda key: made[key])
+        raise SceneError(
+            path,
+            f"too small: the scene would generate about {total:.3g} blocks, more than the "
+            f"{MAX_BLOCKS:,} accepted",
+        )
+
+
+def check_coordinates(
+    blocks: tuple[Block, ...],
+    domain: Domain | None,
+    joints: dict[str, Joint],
+    box: tuple,
+    size: float,
+    solver: SolverSettings,
+) -> None:
+    """Coordinates the dtype can resolve, and solver lengths in proportion to the model."""
+    if max(abs(x) for x in box) > MAX_OFFSET[solver.dtype] * size:
+        polys = [("domain.outline", domain.outline)] if domain is not None else []
+        polys += [(f"blocks.{i}.vertices", b.vertices) for i, b in enumerate(blocks)]
+        path, v = max(polys, key=lambda pv: float(np.max(np.abs(pv[1]))))
+        k = int(np.argmax(np.max(np.abs(v), axis=1)))
+        check_far(v[k], f"{path}.{k}", size, solver.dtype)
+    for name, j in joints.items():
+        if j.origin is not None:
+            check_far(np.array(j.origin), f"joints.{name}.origin", size, solver.dtype)
+    # Substeps move at most step_length until a block has travelled max_displacement, and
+    # contact detection looks 2 step_length ahead: bound both by the model's size.
+    if solver.max_displacement is not None and solver.max_displacement > 10.0 * size:
+        raise SceneError(
+            "solver.max_displacement",
+            f"larger than 10 times the model ({solver.max_displacement:g} m > "
+            f"{10.0 * size:.3g} m): a block would have left the model long before",
+        )
+    step = solver.step_length
+    if step is not None and not 1e-6 * size <= step <= size:
+        raise SceneError(
+            "solver.step_length",
+            f"must be between 1e-6 times and once the model's size ({1e-6 * size:.3g} m to "
+            f"{size:.3g} m; got {step:g})",
+        )
+
+
+def check_far(q: np.ndarray, path: str, size: float, dtype: str) -> None:
+    """Refuse a point so far from (0, 0) that ``dtype`` cannot resolve a model ``size`` m
+    across there (MAX_OFFSET model sizes)."""
+    limit = MAX_OFFSET[dtype] * size
+    if float(np.max(np.abs(q))) > limit:
+        raise SceneError(
+            path,
+            f"{fmt_point(q)} is too far from (0, 0) for a model {size:.3g} m across "
+            f"({dtype} resolves it only within {limit:.3g} m of (0, 0)); shift the "
+            "coordinates towards (0, 0)",
+        )
