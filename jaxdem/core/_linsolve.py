@@ -2,8 +2,8 @@
 
 Owns the three paths behind :func:`linear_solve`, chosen by
 ``model.linear_solver`` (static): "dense" (LU of the assembled matrix,
-:func:`solve_dense`), "sparse" (SciPy's SuperLU on the host through a
-callback, :func:`_solve_sparse`) and "cg" (matrix-free preconditioned
+:func:`solve_dense`), "sparse" (SuiteSparse's CHOLMOD or KLU inside the program,
+:func:`_solve_sparse`) and "cg" (matrix-free preconditioned
 conjugate gradients, :func:`solve_cg`); and the assembly they share
 (:func:`stiffness_blocks`, :func:`assemble_dense`, :func:`host_matrix`).
 
@@ -143,11 +143,10 @@ def host_matrix(rows, cols, blocks, n: int):
 def _host_sparse_solve(rows, cols, blocks, rhs, active=True, symmetric=True):
     """Assemble K from its (D, D) blocks (:func:`stiffness_blocks`) on the host and solve K x = rhs.
 
-    The factorisation is SciPy's SuperLU (minimum-degree ordering of K + K^T).
-    ``rhs`` is (n,) or (n, p). CPU only: on a GPU the matrix would travel to
-    the host (use "cg" there). ``active`` False returns zeros at once: a batch
-    member whose iteration has finished (vmap runs the loop body for every
-    member until the last one is done) costs no factorisation.
+    The fallback of :func:`_solve_sparse` where sparsax is not installed: SciPy's SuperLU
+    (minimum-degree ordering of K + K^T) through a host callback, which JAX cannot store
+    in its compilation cache. ``rhs`` is (n,) or (n, p). ``active`` False returns zeros
+    at once (a finished batch member).
     """
     import scipy.sparse.linalg
 
@@ -166,26 +165,61 @@ def _host_sparse_solve(rows, cols, blocks, rhs, active=True, symmetric=True):
     return lu.solve(rhs).astype(rhs.dtype)
 
 
-def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True):
-    """(K_t + eps M)^-1 R by a sparse direct solve (SciPy's SuperLU through a host callback).
+def _sparsax():
+    """The sparsax module (SuiteSparse's CHOLMOD and KLU as XLA FFI calls), or None."""
+    try:
+        import sparsax
+    except ImportError:  # a platform without its wheel: the SciPy callback instead
+        return None
+    return sparsax
 
-    Fill-in of a 2D contact graph is mild, so cost and memory grow about
-    linearly with the number of blocks, and a direct solve does not slow down
-    near a mechanism as an iterative one does. The springs of each pair are
-    summed into (D, D) blocks on the device (:func:`stiffness_blocks`), and only those
-    go to the host; vmap solves batch members one after another, and skips
-    those that are not ``active`` (their Newton iteration has finished).
-    ``terms`` is (a, b, L, Rt, k); ``symmetric`` (a traced bool) picks
-    SuperLU's symmetric mode, False where the slip coupling is on.
+
+def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True):
+    """(K_t + eps M)^-1 R by a sparse direct solve inside the compiled program.
+
+    SuiteSparse through sparsax's XLA FFI calls, so that the program is one XLA
+    executable (stored and loaded like any other, a vmapped batch solved in one native
+    call): CHOLMOD (supernodal Cholesky) where the iteration matrix is symmetric
+    positive definite, KLU (LU) where it is not (the slip coupling, ``symmetric``
+    False; a bolt that carries compression, whose string stiffness F / L is negative;
+    a batch, where a choice would run both). On the 60 x 60 and 100 x 100 block
+    grids of BENCHMARKS.md ("Sparse solve inside XLA") CHOLMOD factorised twice as
+    fast as SciPy's SuperLU and KLU two to three times slower. Fill-in of a 2D contact
+    graph is mild, so cost and memory grow about linearly with the number of blocks,
+    and a direct solve does not slow down near a mechanism as an iterative one does.
+    The springs of each pair are summed into (D, D) blocks on the device
+    (:func:`stiffness_blocks`) and handed over as COO triplets (duplicates summed,
+    the blocks of unused pairs zero); float32 scenes are solved in float64.
+    Without sparsax, SciPy's SuperLU on the host (:func:`_host_sparse_solve`).
     """
     a, b, L, Rt, k = terms
     diag = jnp.where(jnp.repeat(sub.free, model.ndof), model.pseudo_mass.reshape(-1), 1.0)
     rows, cols, blocks = stiffness_blocks(model, sub, a, b, L, Rt, k, diag)
     rhs = R.reshape(-1)
-    x = jax.pure_callback(_host_sparse_solve, jax.ShapeDtypeStruct(rhs.shape, rhs.dtype),
-                          rows, cols, blocks, rhs, jnp.asarray(active), jnp.asarray(symmetric),
-                          vmap_method="sequential")
-    return x.reshape(R.shape)
+    sparsax = _sparsax()
+    if sparsax is None:
+        x = jax.pure_callback(_host_sparse_solve, jax.ShapeDtypeStruct(rhs.shape, rhs.dtype),
+                              rows, cols, blocks, rhs, jnp.asarray(active),
+                              jnp.asarray(symmetric), vmap_method="sequential")
+        return x.reshape(R.shape)
+    D = model.ndof
+    shape = blocks.shape
+    Ai = jnp.broadcast_to(D * rows[:, None, None] + jnp.arange(D)[:, None], shape)
+    Aj = jnp.broadcast_to(D * cols[:, None, None] + jnp.arange(D)[None, :], shape)
+    Ai, Aj = Ai.reshape(-1).astype(jnp.int32), Aj.reshape(-1).astype(jnp.int32)
+    Ax, b64 = blocks.reshape(-1).astype(jnp.float64), rhs.astype(jnp.float64)
+
+    def lu():
+        return sparsax.lu_solve(Ai, Aj, Ax, b64)
+
+    if model.lanes is not None:
+        x = lu()
+    else:
+        spd = jnp.asarray(symmetric)
+        if model.n_bolts:
+            spd &= ~jnp.any(model.bolt_comp > 0)
+        x = jax.lax.cond(spd, lambda: sparsax.solve(Ai, Aj, Ax, b64), lu)
+    return x.astype(R.dtype).reshape(R.shape)
 
 
 # Stopping rule of the iterative solve: the Newton loop's forcing term lies in

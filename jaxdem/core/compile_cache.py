@@ -16,7 +16,8 @@ tracing it: the source of the jaxdem package, the JAX and jaxlib versions, the
 backend, device and processor, the x64 flag, the argument tree (with its
 static fields: block count, solver, flags) and shapes, the static arguments and
 the XLA options. A later process loads it without tracing. Programs with host
-callbacks (the sparse solve) cannot be stored, and are not; nor is a program
+callbacks (the SciPy fallback of the sparse solve, the sensitivities' host solve) cannot
+be stored, and are not; nor is a program
 that JAX itself loaded from its cache rather than compiled (such an executable
 serialises without its kernels, and the copy fails when called: "Function ...
 not found"), so a program compiled before this store existed is stored the
@@ -188,8 +189,13 @@ def _load_program(path: Path):
         from jax.experimental import serialize_executable
 
         # A loaded program calls LAPACK (the dense LU) without a lowering that
-        # would have set up its kernels first: without this it crashes.
+        # would have set up its kernels first: without this it crashes. The same
+        # for the sparse solve's FFI targets, registered when sparsax is imported.
         initialize_lapack()
+        try:
+            import sparsax  # noqa: F401
+        except ImportError:
+            pass
         blob, in_tree, out_tree = pickle.loads(zlib.decompress(path.read_bytes()))
         return serialize_executable.deserialize_and_load(blob, in_tree, out_tree)
     except Exception:  # noqa: BLE001 - any failure: compile instead

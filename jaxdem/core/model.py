@@ -473,21 +473,19 @@ def linear_solver_for(choice: str, unknowns: int, *, platform: str | None = None
       ``_DENSE_UP_TO_ACCELERATOR`` (1,800).
       On a 2-core CPU SuperLU is already 1.3 times faster at 576 unknowns
       and 7 times at 1,788;
-    - (``_CG_UP_TO``: a band above it where a single CPU solve would take "cg",
-      whose program caches on disk, unlike the sparse path's host callback (8 to
-      13 s of compilation in every process, BENCHMARKS.md "Time to answer"). It is
+    - (``_CG_UP_TO``: a band above it where a single CPU solve would take "cg". It is
       empty: "cg" has no slip coupling and did not converge on seed example 4.)
-    - above that, on a CPU: "sparse" (SciPy's SuperLU on the host), 4 to 7 times
-      faster than the iterative path at 2,000 to 10,000 blocks on a 2-core CPU,
-      if with 1.5 times its memory. A batch (``batch=True``, solved under
-      ``vmap``, jaxdem.batch) takes it from ``_DENSE_UP_TO`` on: its members'
-      factorisations run one after another and finished members are skipped;
-      on the 492-block tunnel of bench_scaling.py a batch of 8 took 0.25 s a
-      sample this way against 0.44 with "cg" and 0.60 with "dense" (0.31 for a
-      loop of single solves);
+    - above that, on a CPU: "sparse" (SuiteSparse's CHOLMOD or KLU inside the program,
+      through sparsax; SciPy's SuperLU through a host callback where sparsax is not
+      installed), 4 to 7 times faster than the iterative path at 2,000 to 10,000
+      blocks on a 2-core CPU (measured with SuperLU), if with 1.5 times its memory.
+      A batch (``batch=True``, solved under ``vmap``, jaxdem.batch) takes it from
+      ``_DENSE_UP_TO`` on: its members are factorised in one native call (KLU); on
+      the 492-block tunnel of bench_scaling.py a batch of 8 took 0.25 s a sample
+      with SuperLU one member after another against 0.44 with "cg" and 0.60 with
+      "dense" (0.31 for a loop of single solves);
     - above ``_DENSE_UP_TO_ACCELERATOR``, on a GPU or TPU: "cg", jittable,
-      memory linear in the contacts; the host callback of "sparse" would copy
-      every matrix to the host.
+      memory linear in the contacts; sparsax's solvers run on the CPU only.
 
     Args:
       choice: "auto", "dense", "sparse" or "cg"; anything but "auto" is kept.
