@@ -15,6 +15,8 @@ import numpy as np
 import pytest
 from scenes import jointed_tunnel, stack
 
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+
 import jaxdem
 from jaxdem.core import model as model_mod
 from jaxdem.core._linsolve import compact_terms, solve_cg, solve_dense
@@ -166,24 +168,44 @@ def test_pcg_and_compaction_match_a_dense_solve():
 @pytest.mark.parametrize("unknowns, platform, expected", [
     (300, "cpu", "dense"), (600, "cpu", "dense"), (603, "cpu", "sparse"),
     (1800, "cpu", "sparse"), (6000, "cpu", "sparse"), (6003, "cpu", "sparse"),
-    (31_392, "cpu", "sparse"), (1800, "gpu", "dense"),
-    (1803, "gpu", "cg"), (31_392, "tpu", "cg"),
+    (31_392, "cpu", "sparse"), (1800, "gpu", "dense"), (3579, "gpu", "dense"),
+    (30_003, "gpu", "dense"), (32_000, "tpu", "dense"), (32_003, "gpu", "cg"),
 ])
 def test_auto_rule(unknowns, platform, expected):
-    """"auto": dense up to 600 unknowns on a CPU (1,800 on an accelerator); above, sparse
-    direct on a CPU; matrix-free CG on an accelerator (README, Solver)."""
+    """"auto": dense up to 600 unknowns on a CPU (32,000 on an accelerator: the 10,000-block
+    grid); above, sparse direct on a CPU; matrix-free CG on an accelerator (README, Solver)."""
     assert model_mod.linear_solver_for("auto", unknowns, platform=platform) == expected
 
 
 @pytest.mark.parametrize("unknowns, platform, expected", [
     (600, "cpu", "dense"), (603, "cpu", "sparse"), (31_392, "cpu", "sparse"),
-    (1803, "gpu", "cg"),
+    (1803, "gpu", "dense"), (32_003, "gpu", "cg"),
 ])
 def test_auto_rule_for_a_batch(unknowns, platform, expected):
-    """A batch on a CPU takes sparse direct from 600 unknowns on (members factorised one
-    after another, finished ones skipped)."""
+    """A batch on a CPU takes sparse direct from 600 unknowns on (its members factorised in
+    one native call); on an accelerator the dense LU as for a single solve."""
     assert model_mod.linear_solver_for("auto", unknowns, platform=platform,
                                        batch=True) == expected
+
+
+@pytest.mark.parametrize("example", ["seed_example4_slope_wet", "seed_example2_tunnel"])
+def test_the_gpus_choice_converges_on_the_seed_examples(example):
+    """What "auto" picks on a GPU (forced here on the CPU) converges on seed examples 4 (225
+    blocks, wet, staged) and 2 (1,193 blocks with deformable cells) to the CPU's answer:
+    the same Newton iterates, other factorisations (issue 30; "cg" stopped at the
+    iteration limit on both)."""
+    scene = jaxdem.load_scene(EXAMPLES / f"{example}.toml")
+    model, _, _ = model_mod.build(scene)
+    gpu = model_mod.linear_solver_for("auto", model.n_blocks * model.ndof, platform="gpu")
+    assert model.linear_solver == "sparse" and gpu == "dense"
+    on_gpu = jaxdem.solve(parse_scene(_with_solver(scene.data, linear_solver=gpu)))
+    on_cpu = jaxdem.solve(scene)
+    assert on_gpu.converged and on_cpu.converged
+    for name, m in on_cpu.monitors.items():
+        value = np.asarray(m.get("displacement", [m.get("convergence")]), float)
+        other = np.asarray(on_gpu.monitors[name].get(
+            "displacement", [on_gpu.monitors[name].get("convergence")]), float)
+        np.testing.assert_allclose(other, value, rtol=1e-6, atol=1e-9, err_msg=name)
 
 
 @pytest.mark.parametrize("choice", ["dense", "sparse", "cg"])

@@ -35,7 +35,13 @@ from jaxdem.core.state import ROCK, WALL_FIXED, WALL_ROLLER, Model, State, empty
 
 _USE_CELLS_ABOVE = 400  # blocks; below this all-pairs boxes are cheaper
 _DENSE_UP_TO = 600  # unknowns; above this sparse direct (CPU) or iterative (GPU, batches)
-_DENSE_UP_TO_ACCELERATOR = 1800  # unknowns, on a GPU or TPU (not measured here)
+_DENSE_UP_TO_ACCELERATOR = 32_000
+"""Unknowns up to which "auto" takes the dense LU on a GPU or TPU: its float64 matrix is
+8 GB at 32,000 unknowns (a 10,000-block grid), a tenth of an 80 GB card. Above it "cg",
+which has no slip coupling and stopped at the iteration limit on seed examples 2 and 4
+and the 1,600- and 10,000-block grids (issue 30): on a GPU the dense LU is the path that
+converges wherever the CPU's does (the same Newton iterates, tests/test_scaling.py).
+Not timed on a GPU yet."""
 # Unknowns up to which a single solve on a CPU above _DENSE_UP_TO would take "cg" (its
 # program caches on disk). Not above _DENSE_UP_TO, i.e. no such band: the cg path
 # has no slip coupling, and on seed example 4 (228 blocks) it ran into the iteration
@@ -470,7 +476,8 @@ def linear_solver_for(choice: str, unknowns: int, *, platform: str | None = None
     - up to ``_DENSE_UP_TO`` (600) unknowns, 200 rigid blocks: "dense"
       (LU; the limits were measured with Cholesky, which the dense path used
       before it took the unsymmetric slip tangent); on a GPU or TPU up to
-      ``_DENSE_UP_TO_ACCELERATOR`` (1,800).
+      ``_DENSE_UP_TO_ACCELERATOR`` (32,000: every bundled example and the grids up
+      to 100 x 100 blocks).
       On a 2-core CPU SuperLU is already 1.3 times faster at 576 unknowns
       and 7 times at 1,788;
     - (``_CG_UP_TO``: a band above it where a single CPU solve would take "cg". It is
@@ -484,8 +491,9 @@ def linear_solver_for(choice: str, unknowns: int, *, platform: str | None = None
       the 492-block tunnel of bench_scaling.py a batch of 8 took 0.25 s a sample
       with SuperLU one member after another against 0.44 with "cg" and 0.60 with
       "dense" (0.31 for a loop of single solves);
-    - above ``_DENSE_UP_TO_ACCELERATOR``, on a GPU or TPU: "cg", jittable,
-      memory linear in the contacts; sparsax's solvers run on the CPU only.
+    - above ``_DENSE_UP_TO_ACCELERATOR``, on a GPU or TPU: "cg", jittable, memory
+      linear in the contacts, but without the slip coupling (it may not converge
+      where slip governs); sparsax's solvers run on the CPU only.
 
     Args:
       choice: "auto", "dense", "sparse" or "cg"; anything but "auto" is kept.
