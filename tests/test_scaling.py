@@ -15,8 +15,6 @@ import numpy as np
 import pytest
 from scenes import jointed_tunnel, stack
 
-EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
-
 import jaxdem
 from jaxdem.core import model as model_mod
 from jaxdem.core._linsolve import compact_terms, solve_cg, solve_dense
@@ -26,6 +24,8 @@ from jaxdem.core.increment import increment
 from jaxdem.core.loads import make_loads
 from jaxdem.core.status import Status
 from jaxdem.scene import parse_scene
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 
 def _with_solver(d, **kw):

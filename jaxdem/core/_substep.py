@@ -140,8 +140,10 @@ def _newton(model: Model, sub: Sub, st0):
         # length (that step is not taken), hands back to the secant for the
         # rest of the sub-step. Three secant iterations that barely reduce the
         # residual (stall) mean a mechanism or slip that the secant cannot
-        # settle: the slip tangent, kept while it reduces the residual, and
-        # ``creeping`` below.
+        # settle: the slip tangent (with the slip coupling on the direct paths,
+        # as when tried: without it, the stall steps of seed example 4 undid and
+        # redid the same progress for hundreds of iterations, 1,408 in all
+        # against 721 with it, BENCHMARKS.md "Issue 30"), and ``creeping`` below.
         still = ~jnp.any(changed)
         progress = rnorm <= 0.98 * c["rprev"]
         settled = jnp.where(still & progress, c["settled"] + 1, 0)
@@ -168,9 +170,9 @@ def _newton(model: Model, sub: Sub, st0):
                 eta = jnp.clip(jnp.maximum(0.9 * ratio**2, need),
                                CG_RTOL_MIN[tol.dtype == jnp.float64], CG_RTOL_MAX)
                 return linear_solve(model, sub, terms, ev["R"], rtol=eta)
-            terms = with_slip_coupling(model, sub, ev, terms, trying)
+            terms = with_slip_coupling(model, sub, ev, terms, tangent)
             return linear_solve(model, sub, terms, ev["R"], active=~c["done"] & ~converged,
-                                symmetric=~trying)
+                                symmetric=~tangent)
 
         # The iterate that converged takes no step: its matrix is not
         # assembled nor factorised (one factorisation a sub-step). Under vmap

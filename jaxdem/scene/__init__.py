@@ -97,28 +97,14 @@ only modules listed above it):
 - :mod:`jaxdem.scene._overrides`: ``--set`` and ``apply_overrides``.
 """
 
-from jaxdem.scene._checks import OVERLAP_TOLERANCE, overlap_depth
+from jaxdem.scene._checks import OVERLAP_TOLERANCE, overlap_depth  # noqa: I001 (records packed)
 from jaxdem.scene._fields import SceneError
 from jaxdem.scene._overrides import apply_overrides, parse_set_arguments
 from jaxdem.scene._parse import Scene, load_scene, parse_scene
 from jaxdem.scene._properties import trace_angle
 from jaxdem.scene._schema import (
-    Block,
-    Bolt,
-    Boundary,
-    Discontinuity,
-    Domain,
-    Excavation,
-    InSitu,
-    Joint,
-    Material,
-    Monitor,
-    SolverSettings,
-    Stage,
-    Support,
-    Water,
-    Zone,
-)
+    Block, Bolt, Boundary, Discontinuity, Domain, Excavation, InSitu, Joint, Material, Monitor,
+    SolverSettings, Stage, Support, Water, Zone)
 from jaxdem.scene._toml import MAX_FILE_BYTES
 
 __all__ = ["MAX_FILE_BYTES", "OVERLAP_TOLERANCE", "Block", "Bolt", "Boundary", "Discontinuity",
