@@ -180,9 +180,9 @@ def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True)
     SuiteSparse through sparsax's XLA FFI calls, so that the program is one XLA
     executable (stored and loaded like any other, a vmapped batch solved in one native
     call): CHOLMOD (supernodal Cholesky) where the iteration matrix is symmetric
-    positive definite, KLU (LU) where it is not (the slip coupling, ``symmetric``
-    False; a bolt that carries compression, whose string stiffness F / L is negative;
-    a batch, where a choice would run both). On the 60 x 60 and 100 x 100 block
+    positive definite beyond rounding, KLU (LU) elsewhere: the slip coupling
+    (``symmetric`` False), a scene with bolts (their geometric stiffness), float32, a
+    batch (where a choice would run both). On the 60 x 60 and 100 x 100 block
     grids of BENCHMARKS.md ("Sparse solve inside XLA") CHOLMOD factorised twice as
     fast as SciPy's SuperLU and KLU two to three times slower. Fill-in of a 2D contact
     graph is mild, so cost and memory grow about linearly with the number of blocks,
@@ -212,13 +212,15 @@ def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True)
     def lu():
         return sparsax.lu_solve(Ai, Aj, Ax, b64)
 
-    if model.lanes is not None:
+    # CHOLMOD stops the whole program where its matrix is not positive definite, so it
+    # only gets what is positive definite beyond rounding: a float64 matrix (eps M, a
+    # millionth of the stiffness, is far above its rounding; float32 rounding broke
+    # seed example 2's) of springs and cells alone (a bolt's geometric stiffness F H
+    # can be indefinite in rotation), in a single solve (under vmap a cond runs both).
+    if model.lanes is not None or model.n_bolts or R.dtype != jnp.float64:
         x = lu()
     else:
-        spd = jnp.asarray(symmetric)
-        if model.n_bolts:
-            spd &= ~jnp.any(model.bolt_comp > 0)
-        x = jax.lax.cond(spd, lambda: sparsax.solve(Ai, Aj, Ax, b64), lu)
+        x = jax.lax.cond(jnp.asarray(symmetric), lambda: sparsax.solve(Ai, Aj, Ax, b64), lu)
     return x.astype(R.dtype).reshape(R.shape)
 
 
