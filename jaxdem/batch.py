@@ -356,7 +356,7 @@ class _BatchDriver:
             skip = jnp.asarray(~self.live)
             t1 = time.perf_counter()
             fn, dt = compiled_program(fn_jit, self.model, self.fields, self.state, loads, skip,
-                               quick=self.quick)
+                                      quick=self.quick)
             new, info = fn(self.model, self.fields, self.state, loads, skip)
             status = np.asarray(info["status"])
             self.compile_s += dt

@@ -360,7 +360,7 @@ class _Driver:
             out[0] = np.asarray(release_forces_jit(self.state.centroid, snap, rm, D))
             return out
         value, tangent = release_with_tangent(self.state.centroid, snap, rm,
-                                               self.dstate["centroid"], self.info["dsnapshot"], D)
+                                              self.dstate["centroid"], self.info["dsnapshot"], D)
         out[0], out[1:] = np.asarray(value), np.asarray(tangent)
         return out
 

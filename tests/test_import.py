@@ -28,7 +28,7 @@ def _fresh(code: str) -> dict:
     """Run ``code`` in a new Python process (without this process's JAX settings) and
     return the JSON it prints last."""
     env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS",
-                                                             "JAX_ENABLE_X64")}
+                                                            "JAX_ENABLE_X64")}
     env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
     done = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], env=env, cwd=ROOT,
                           capture_output=True, text=True, timeout=600)

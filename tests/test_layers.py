@@ -130,5 +130,5 @@ def test_the_layers_name_every_solver_module():
 
 def test_the_order_names_every_unit():
     units = {p.stem for p in PACKAGE.glob("*.py")} | {p.name for p in PACKAGE.iterdir()
-                                                     if (p / "__init__.py").exists()}
+                                                      if (p / "__init__.py").exists()}
     assert units - {"__init__", "__main__"} == set(ORDER) - {"inverse"}

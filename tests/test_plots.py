@@ -337,7 +337,7 @@ def test_many_block_stresses_are_thinned(tmp_path):
         centroids=c,
     )
     keep = plots_canvas.nearest_centre_per_cell(c, np.ones(len(c), dtype=bool),
-                                                 plots_model._CROSS_GRID)
+                                                plots_model._CROSS_GRID)
     assert keep.sum() == plots_model._CROSS_GRID**2
     _assert_png(plots.plot_principal_stresses(result, tmp_path / "stresses.png"))
 

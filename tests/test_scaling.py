@@ -168,7 +168,7 @@ def test_pcg_and_compaction_match_a_dense_solve():
     loads = make_loads(model, model.f_ext)
     mdl, sub, st0, _, _ = prepare_substep(model, state, loads)
     ev = evaluate(mdl, sub, jnp.zeros_like(loads.force), jnp.zeros_like(st0, bool), st0,
-                          st0, 0.0)
+                  st0, 0.0)
     terms = stiffness_terms(mdl, sub, ev, False)
     packed = compact_terms(mdl, terms)
     assert packed[3].shape[0] < terms[3].shape[0]

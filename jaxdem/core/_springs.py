@@ -145,9 +145,9 @@ def evaluate(model: Model, sub: Sub, du, frozen, frozen_state, prev, band):
     d_n = jnp.where(frozen & active, fn_l - fn, 0.0)
     d_s = jnp.where(frozen & active, fs_l - fs, 0.0)
     internal = scatter_pairs(model.n_blocks, geo["a"], geo["b"],
-                        sub.Bn * total_n[:, None] - sub.Bs * fs[:, None])
+                             sub.Bn * total_n[:, None] - sub.Bs * fs[:, None])
     to_law = scatter_pairs(model.n_blocks, geo["a"], geo["b"],
-                      sub.Bn * d_n[:, None] - sub.Bs * d_s[:, None])
+                           sub.Bn * d_n[:, None] - sub.Bs * d_s[:, None])
     out = dict(fn=fn, fs=fs, state=st, gap=gap, fn_trial=fn_trial, fs_trial=fs_trial,
                total_n=total_n, misfit=jnp.abs(d_n) + jnp.abs(d_s), law_state=st_l)
     if model.n_bolts:

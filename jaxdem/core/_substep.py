@@ -238,7 +238,7 @@ def _newton(model: Model, sub: Sub, st0):
     # A converged sub-step returns (and commits) the law's own forces and
     # states, which balance the blocks; one cut short keeps the frozen ones.
     ev = evaluate(model, sub, c["du"], c["frozen"] & ~c["converged"], c["frozen_state"], c["st"],
-                   band)
+                  band)
     return c["du"], ev, c
 
 

@@ -205,7 +205,7 @@ def floats_of(sub: Sub) -> list:
 
 
 def substep_tangent(model: Model, state: State, loads: Loads, dmodel, dstate, dloads,
-                     active_share: int = ACTIVE_SHARE):
+                    active_share: int = ACTIVE_SHARE):
     """:func:`jaxdem.core._substep.substep` and the derivatives of its new state and snapshot.
 
     Returns (the outputs of :func:`jaxdem.core._substep.substep`, (dstate, dsnapshot)); see
@@ -271,7 +271,7 @@ def substep_tangent(model: Model, state: State, loads: Loads, dmodel, dstate, dl
 
 @functools.partial(jax.jit, static_argnames=("mode",))
 def preload_tangent(model: Model, state: State, loads: Loads, args, dmodel, dloads, dargs,
-                     mode: str):
+                    mode: str):
     """:func:`jaxdem.core.loads.in_situ_preload` (its state and overflow flag) and its state's
     derivatives.
 

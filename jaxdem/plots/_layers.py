@@ -269,7 +269,7 @@ def draw_bolts(ax: Any, result: Result, segments: list[np.ndarray], size: float)
 
 
 def draw_monitors(ax: Any, monitors: dict[str, Any], size: float,
-                   moved: dict[str, Any] | None = None) -> list[Any]:
+                  moved: dict[str, Any] | None = None) -> list[Any]:
     """Monitor points (diamonds) and sections (dashed lines), labelled.
 
     ``moved``: name -> a point monitor's displacement [ux, uy] (m); the diamond is then

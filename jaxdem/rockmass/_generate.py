@@ -149,7 +149,7 @@ def generate(scene: Scene) -> RockMass:
         outlines = [np.asarray(e.vertices, float) for e in scene.excavations]
         if dom.mesh_max_size is not None and dom.mesh_max_size > dom.mesh_size and outlines:
             squares = graded_squares(box, float(dom.mesh_size), float(dom.mesh_max_size),
-                                      outlines)
+                                     outlines)
             mesh_by_squares(work, squares, tol)
         else:
             mesh_pieces(work, float(dom.mesh_size), np.array(box[:2]), tol)

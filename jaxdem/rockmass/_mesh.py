@@ -88,7 +88,7 @@ def mesh_by_squares(work: Work, squares: np.ndarray, tol: float) -> None:
         for k in hit:
             (x0, y0), (x1, y1) = lo_sq[k], hi_sq[k]
             cell = clip(v, [(ex, x0, False), (ex, x1, True), (ey, y0, False), (ey, y1, True)],
-                         tol)
+                        tol)
             if cell is not None and piece_area(cell) > tol * tol:
                 new.add(cell, work.material[i], work.excavation[i], i)
     work.__dict__.update(new.__dict__)

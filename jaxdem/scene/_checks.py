@@ -179,7 +179,7 @@ def _on_discontinuity(p: np.ndarray, q: np.ndarray, discs: tuple, tol: float) ->
 
 
 def check_block_joints(blocks: tuple[Block, ...], discs: tuple, joints: dict,
-                        has_default: bool, default_joint: str, tol: float) -> None:
+                       has_default: bool, default_joint: str, tol: float) -> None:
     """Which joint each explicit block face gets must be explicit.
 
     A face on a [[discontinuities]] line takes that line's joint; any other face takes its

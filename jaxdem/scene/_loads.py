@@ -60,7 +60,7 @@ def _side_segment(side: str, box: tuple) -> tuple[np.ndarray, np.ndarray]:
 
 
 def parse_boundaries(data: dict, box: tuple, tol: float, stages: tuple = (),
-                      rock: Rock | None = None) -> tuple[Boundary, ...]:
+                     rock: Rock | None = None) -> tuple[Boundary, ...]:
     out = []
     for i, raw in enumerate(read_array_of_tables(data, "boundaries")):
         p = f"boundaries.{i}"

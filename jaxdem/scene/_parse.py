@@ -176,7 +176,7 @@ def _parse(data: Any, source: str) -> Scene:
 
     if "default_joint" in head:
         default_joint = defined_name(head["default_joint"], "scene.default_joint", "joint",
-                                      joints)
+                                     joints)
     elif joints:
         default_joint = next(iter(joints))
     else:
@@ -206,7 +206,7 @@ def _parse(data: Any, source: str) -> Scene:
     check_block_count(domain, joints, excavations, len(blocks))
     discontinuities = parse_discontinuities(data, joints, default_joint, box, tol)
     check_block_joints(blocks, discontinuities, joints, "default_joint" in head,
-                        default_joint, 1e3 * tol)
+                       default_joint, 1e3 * tol)
     rock = Rock(blocks, domain, excavations, tol)
     boundaries = parse_boundaries(data, box, tol, stages, rock)
     # Lines may reach beyond the rock, but not beyond what the dtype resolves.

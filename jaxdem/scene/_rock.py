@@ -140,7 +140,7 @@ def parse_domain(data: dict, materials: dict[str, Material]) -> Domain | None:
 
 
 def parse_zones(data: dict, materials: dict[str, Material], domain: Domain | None,
-                 far: tuple[float, str] | None = None) -> tuple:
+                far: tuple[float, str] | None = None) -> tuple:
     raw = read_array_of_tables(data, "zones")
     if raw and domain is None:
         raise SceneError("zones", "needs a [domain] (a zone is a region of the generated rock)")
