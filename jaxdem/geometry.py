@@ -21,7 +21,9 @@ import numpy as np
 
 __all__ = [
     "bbox",
+    "bboxes",
     "centroid",
+    "centroids",
     "characteristic_length",
     "convex_clip",
     "convex_decompose",
@@ -29,16 +31,21 @@ __all__ = [
     "corner_sines",
     "distance_to_boundary",
     "drop_collinear",
+    "drop_collinear_all",
     "find_overlapping_pairs",
     "has_repeated_points",
     "is_convex",
     "overlap_area",
     "point_in_polygon",
     "point_on_segment",
+    "points_in_polygons",
+    "polar_moment",
+    "polar_moments",
     "polygon_overlap_area",
     "segments_intersect",
     "self_intersects",
     "signed_area",
+    "signed_areas",
     "slice_convex",
     "split_by_line",
 ]
@@ -510,3 +517,184 @@ def distance_to_boundary(p: np.ndarray, v: np.ndarray) -> float:
     t = np.clip(t, 0.0, 1.0)
     foot = a + t[:, None] * d
     return float(np.min(np.hypot(q[0] - foot[:, 0], q[1] - foot[:, 1])))
+
+
+def polar_moment(v: np.ndarray, c: np.ndarray) -> float:
+    """Polar moment of area of polygon ``v`` about point ``c`` divided by its area (m2):
+    r_g^2 = J / A, J = Ixx + Iyy (shoelace formulas); about the centroid, the radius of
+    gyration squared."""
+    p = _as_poly(v) - c
+    x0, y0 = p[:, 0], p[:, 1]
+    x1, y1 = np.roll(x0, -1), np.roll(y0, -1)
+    cross = x0 * y1 - x1 * y0
+    ixx = np.sum(cross * (y0**2 + y0 * y1 + y1**2)) / 12.0
+    iyy = np.sum(cross * (x0**2 + x0 * x1 + x1**2)) / 12.0
+    area = np.sum(cross) / 2.0
+    return float((ixx + iyy) / area)
+
+
+# --------------------------------------------------------------------------- many polygons at once
+#
+# One answer per polygon of a list, as the scalar functions above give one by one, without a
+# Python loop over the polygons: the polygons are grouped by vertex count (polygon_groups),
+# each group an (m, n, 2) array, and the scalar formulas run on whole groups. Each polygon's
+# n terms are summed in the scalar function's order, so that the answers are the scalar
+# functions' to the last bit (tests/test_geometry.py compares them).
+
+
+def polygon_groups(polys: Sequence[np.ndarray]) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """The polygons grouped by vertex count: ``(n, indices, vertices)`` per count n, with
+    ``vertices`` (m, n, 2) in m the polygons ``polys[indices]``, in increasing n."""
+    counts = np.fromiter((len(p) for p in polys), dtype=np.int64, count=len(polys))
+    out = []
+    for n in np.unique(counts):
+        idx = np.nonzero(counts == n)[0]
+        v = np.asarray(np.stack([polys[i] for i in idx]), dtype=np.float64).reshape(len(idx),
+                                                                                   int(n), 2)
+        out.append((int(n), idx, v))
+    return out
+
+
+def _next_many(v: np.ndarray) -> np.ndarray:
+    return np.concatenate([v[:, 1:], v[:, :1]], axis=1)
+
+
+def _prev_many(v: np.ndarray) -> np.ndarray:
+    return np.concatenate([v[:, -1:], v[:, :-1]], axis=1)
+
+
+def _shoelace_many(v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    d = v - v[:, :1]
+    dn = _next_many(d)
+    cross = d[..., 0] * dn[..., 1] - dn[..., 0] * d[..., 1]
+    return 0.5 * np.sum(cross, axis=1), d, cross
+
+
+def signed_areas(polys: Sequence[np.ndarray]) -> np.ndarray:
+    """:func:`signed_area` of each polygon (m2), shape (N,)."""
+    out = np.zeros(len(polys))
+    for n, idx, v in polygon_groups(polys):
+        if n >= 3:
+            out[idx] = _shoelace_many(v)[0]
+    return out
+
+
+def centroids(polys: Sequence[np.ndarray]) -> np.ndarray:
+    """:func:`centroid` of each polygon (m), shape (N, 2)."""
+    out = np.zeros((len(polys), 2))
+    for n, idx, v in polygon_groups(polys):
+        if n == 0:
+            raise ValueError("centroid of an empty polygon")
+        mean = v.mean(axis=1)
+        if n < 3:
+            out[idx] = mean
+            continue
+        area, d, cross = _shoelace_many(v)
+        diag2 = np.sum((v.max(axis=1) - v.min(axis=1)) ** 2, axis=1)
+        flat = (np.abs(area) <= 1e-14 * diag2) | (area == 0.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            c = np.sum((d + _next_many(d)) * cross[..., None], axis=1) / (6.0 * area)[:, None]
+        out[idx] = np.where(flat[:, None], mean, v[:, 0] + c)
+    return out
+
+
+def polar_moments(polys: Sequence[np.ndarray], centres: np.ndarray) -> np.ndarray:
+    """:func:`polar_moment` of each polygon about its point of ``centres`` (N, 2) (m2),
+    shape (N,)."""
+    centres = np.asarray(centres, dtype=np.float64)
+    out = np.zeros(len(polys))
+    for _, idx, v in polygon_groups(polys):
+        p = v - centres[idx][:, None, :]
+        x0, y0 = p[..., 0], p[..., 1]
+        x1, y1 = np.roll(x0, -1, axis=1), np.roll(y0, -1, axis=1)
+        cross = x0 * y1 - x1 * y0
+        ixx = np.sum(cross * (y0**2 + y0 * y1 + y1**2), axis=1) / 12.0
+        iyy = np.sum(cross * (x0**2 + x0 * x1 + x1**2), axis=1) / 12.0
+        area = np.sum(cross, axis=1) / 2.0
+        out[idx] = (ixx + iyy) / area
+    return out
+
+
+def bboxes(polys: Sequence[np.ndarray]) -> np.ndarray:
+    """:func:`bbox` of each polygon, (N, 4) rows ``(xmin, ymin, xmax, ymax)`` (m)."""
+    out = np.zeros((len(polys), 4))
+    for _, idx, v in polygon_groups(polys):
+        out[idx, :2] = v.min(axis=1)
+        out[idx, 2:] = v.max(axis=1)
+    return out
+
+
+def _in_polygon_many(p: np.ndarray, v: np.ndarray, tol: float) -> np.ndarray:
+    """:func:`point_in_polygon` of points ``p`` (c, 2) in polygons ``v`` (c, n, 2), (c,)."""
+    px, py = p[:, 0:1], p[:, 1:2]
+    a = v
+    b = _next_many(v)
+    d = b - a
+    len2 = np.sum(d * d, axis=2)
+    ax, ay, dx, dy = a[..., 0], a[..., 1], d[..., 0], d[..., 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(len2 > 0.0, ((px - ax) * dx + (py - ay) * dy) / len2, 0.0)
+    t = np.clip(t, 0.0, 1.0)
+    dist = np.hypot(px - (ax + t * dx), py - (ay + t * dy))
+    by = b[..., 1]
+    straddle = (ay > py) != (by > py)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x_cross = ax + (py - ay) * dx / np.where(straddle, by - ay, 1.0)
+    odd = np.count_nonzero(straddle & (px < x_cross), axis=1) % 2 == 1
+    return np.any(dist <= tol, axis=1) | odd
+
+
+def points_in_polygons(points: np.ndarray, polys: Sequence[np.ndarray],
+                       tol: float = 0.0) -> np.ndarray:
+    """:func:`point_in_polygon` of every point (P, 2) in every polygon: (P, N) bool.
+
+    Only the pairs whose point lies in the polygon's bounding box grown by ``tol`` (m)
+    are tested (a point farther from the box is farther than ``tol`` from the polygon
+    and outside it); those are tested all at once.
+    """
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    out = np.zeros((len(pts), len(polys)), dtype=bool)
+    if not len(pts) or not len(polys):
+        return out
+    groups = polygon_groups(polys)
+    count = np.zeros(len(polys), dtype=np.int64)
+    row = np.zeros(len(polys), dtype=np.int64)
+    for n, idx, _ in groups:
+        count[idx] = n
+        row[idx] = np.arange(len(idx))
+    box = bboxes(polys)
+    lo, hi = box[:, :2] - 2.0 * tol, box[:, 2:] + 2.0 * tol
+    chunk = max(1, 2**22 // len(polys))
+    for s in range(0, len(pts), chunk):
+        q = pts[s:s + chunk]
+        near = np.all((lo[None] <= q[:, None]) & (q[:, None] <= hi[None]), axis=2)
+        pi, ni = np.nonzero(near)
+        for n, _, v in groups:
+            sel = count[ni] == n
+            if np.any(sel):
+                out[s + pi[sel], ni[sel]] = _in_polygon_many(q[pi[sel]], v[row[ni[sel]]], tol)
+    return out
+
+
+def drop_collinear_all(polys: Sequence[np.ndarray], tol: float) -> list[np.ndarray]:
+    """:func:`drop_collinear` of each polygon, as a list.
+
+    A polygon whose edges are all longer than 2 ``tol`` and whose vertices all lie
+    farther than 2 ``tol`` (m) from the line through their neighbours loses nothing: it
+    is kept as it is, found for all polygons at once; only the others go through the
+    scalar function.
+    """
+    whole = np.zeros(len(polys), dtype=bool)
+    for n, idx, v in polygon_groups(polys):
+        if n < 3:
+            continue
+        a, b, c = _prev_many(v), v, _next_many(v)
+        ac = c - a
+        lac = np.hypot(ac[..., 0], ac[..., 1])
+        cross = np.abs(ac[..., 0] * (b[..., 1] - a[..., 1]) - ac[..., 1] * (b[..., 0] - a[..., 0]))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            dist = np.where(lac > 0.0, cross / np.where(lac > 0.0, lac, 1.0), 0.0)
+        edge = np.hypot(*(c - b).transpose(2, 0, 1))
+        whole[idx] = np.all((edge > 2.0 * tol) & (dist > 2.0 * tol), axis=1)
+    return [np.array(p, dtype=np.float64) if whole[i] else drop_collinear(p, tol)
+            for i, p in enumerate(polys)]

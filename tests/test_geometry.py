@@ -172,3 +172,97 @@ def test_find_overlapping_pairs_agrees_with_all_pairs():
         if g.overlap_area(polys[i], polys[j]) > 1e-12
     ]
     assert g.find_overlapping_pairs(polys, 1e-12) == brute
+
+
+# --------------------------------------------------------------------------- many polygons at once
+# The vectorised functions against their scalar definitions, polygon by polygon.
+
+
+@st.composite
+def star_polygons(draw, convex: bool = True) -> np.ndarray:
+    """A random simple CCW polygon of 3 to 24 vertices: sorted angles around a centre up to
+    1e5 m from (0, 0) (a convex one: on a circle; otherwise radii vary, star-shaped)."""
+    n = draw(st.integers(3, 24))
+    gaps = np.array(draw(st.lists(st.floats(0.05, 1.0), min_size=n, max_size=n)))
+    angles = 2.0 * np.pi * np.cumsum(gaps) / np.sum(gaps) + draw(st.floats(0.0, 6.3))
+    r = draw(st.floats(1e-3, 1e2))
+    radii = r * (np.ones(n) if convex else
+                 np.array(draw(st.lists(st.floats(0.3, 1.0), min_size=n, max_size=n))))
+    centre = np.array([draw(st.floats(-1e5, 1e5)), draw(st.floats(-1e5, 1e5))])
+    return centre + radii[:, None] * np.stack([np.cos(angles), np.sin(angles)], axis=1)
+
+
+polygon_lists = st.lists(st.one_of(star_polygons(), star_polygons(convex=False)),
+                         min_size=1, max_size=12)
+
+
+@settings(max_examples=60, deadline=None)
+@given(polys=polygon_lists)
+def test_areas_centroids_moments_agree_with_scalar(polys):
+    areas = g.signed_areas(polys)
+    cents = g.centroids(polys)
+    rg2 = g.polar_moments(polys, cents)
+    for i, v in enumerate(polys):
+        a, c = g.signed_area(v), g.centroid(v)
+        size = np.sqrt(abs(a))
+        assert abs(areas[i] - a) <= 1e-12 * abs(a)
+        assert np.hypot(*(cents[i] - c)) <= 1e-12 * size
+        assert abs(rg2[i] - g.polar_moment(v, c)) <= 1e-12 * abs(g.polar_moment(v, c))
+        np.testing.assert_array_equal(g.bboxes(polys)[i], g.bbox(v))
+
+
+def test_polar_moment_of_rectangle_and_square_grid():
+    # Rectangle b x h about its centroid: J / A = (b^2 + h^2) / 12.
+    rect = np.array([[0.0, 0.0], [4.0, 0.0], [4.0, 2.0], [0.0, 2.0]]) + [3e5, -2e4]
+    assert g.polar_moment(rect, g.centroid(rect)) == pytest.approx(20.0 / 12.0, rel=1e-12)
+    polys = _grid(30)
+    np.testing.assert_allclose(g.polar_moments(polys, g.centroids(polys)), 1.0 / 6.0,
+                               rtol=1e-12)
+    np.testing.assert_allclose(g.centroids(polys), [p.mean(axis=0) for p in polys], rtol=1e-12)
+
+
+def test_centroids_of_degenerate_polygons_as_scalar():
+    polys = [np.array([[1.0, 2.0]]), np.array([[0.0, 0.0], [2.0, 2.0]]),
+             np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]]), TRIANGLE]
+    np.testing.assert_array_equal(g.centroids(polys), [g.centroid(p) for p in polys])
+    np.testing.assert_array_equal(g.signed_areas(polys), [g.signed_area(p) for p in polys])
+    with pytest.raises(ValueError):
+        g.centroids([np.zeros((0, 2))])
+
+
+@settings(max_examples=60, deadline=None)
+@given(polys=polygon_lists, data=st.data())
+def test_points_in_polygons_agrees_with_scalar(polys, data):
+    # Points inside, outside, on vertices, near edges: every pair against point_in_polygon.
+    pts = []
+    for v in polys:
+        c = v.mean(axis=0)
+        r = float(np.max(np.hypot(*(v - c).T)))
+        u = data.draw(st.lists(st.floats(-1.3, 1.3), min_size=2, max_size=2))
+        pts += [c, v[0], 0.5 * (v[0] + v[1]), c + r * np.array(u)]
+    tol = data.draw(st.sampled_from([0.0, 1e-9, 1e-3]))
+    inside = g.points_in_polygons(np.array(pts), polys, tol)
+    expected = [[g.point_in_polygon(p, v, tol) for v in polys] for p in pts]
+    np.testing.assert_array_equal(inside, expected)
+
+
+def test_points_in_polygons_grid_and_shapes():
+    polys = _grid(100)
+    pts = np.array([[50.5, 50.5], [0.0, 0.0], [100.5, 3.0], [99.5, 99.5]])
+    inside = g.points_in_polygons(pts, polys, 1e-9)
+    assert [np.nonzero(row)[0].tolist() for row in inside] == [[5050], [0], [], [9999]]
+    assert g.points_in_polygons(np.zeros((0, 2)), polys).shape == (0, 10_000)
+    assert g.points_in_polygons(pts, []).shape == (4, 0)
+
+
+@settings(max_examples=40, deadline=None)
+@given(polys=polygon_lists, data=st.data())
+def test_drop_collinear_all_agrees_with_scalar(polys, data):
+    # Put a 180-degree vertex and a repeated vertex into some polygons.
+    polys = list(polys)
+    v = polys[0]
+    polys[0] = np.vstack([v[:1], 0.5 * (v[0] + v[1]), v[1:]])
+    polys.append(np.vstack([v[:1], v[:1] + 1e-12, v[1:]]))
+    tol = data.draw(st.sampled_from([0.0, 1e-9, 1e-6]))
+    for got, p in zip(g.drop_collinear_all(polys, tol), polys, strict=True):
+        np.testing.assert_array_equal(got, g.drop_collinear(p, tol))

@@ -130,16 +130,26 @@ def _faces_on_segment(poly, p0, p1, tol):
     return out
 
 
+def _near_segment(boxes, p0, p1, tol) -> list[int]:
+    """The boxes (N, 4) that reach within 2 tol (m) of the box of segment p0-p1: the only
+    polygons that can have a face within tol of the segment."""
+    lo, hi = np.minimum(p0, p1) - 2.0 * tol, np.maximum(p0, p1) + 2.0 * tol
+    return np.nonzero((boxes[:, 0] <= hi[0]) & (boxes[:, 2] >= lo[0])
+                      & (boxes[:, 1] <= hi[1]) & (boxes[:, 3] >= lo[1]))[0].tolist()
+
+
 def _edge_joints(polys, V, scene, joint_index, tol):
     """(n, V) joint id of each face lying on a discontinuity, -1 elsewhere."""
     out = np.full((len(polys), V), -1, np.int32)
+    boxes = geometry.bboxes(polys) if scene.discontinuities else None
     for disc in scene.discontinuities:
         p0, p1 = np.asarray(disc.start, float), np.asarray(disc.end, float)
         d = p1 - p0
         L = np.linalg.norm(d)
         t = d / L
         n = np.array([-t[1], t[0]])
-        for i, poly in enumerate(polys):
+        for i in _near_segment(boxes, p0, p1, tol):
+            poly = polys[i]
             m = len(poly)
             a = poly
             b = np.roll(poly, -1, axis=0)
@@ -164,12 +174,12 @@ class _Piece:
 def _pieces(scene, tol) -> list[_Piece]:
     """Explicit blocks (assigned to the excavation holding their centroid) and generated ones."""
     excavations = scene.excavations
+    verts = [np.asarray(b.vertices, float) for b in scene.blocks]
+    inside = geometry.points_in_polygons(geometry.centroids(verts).reshape(-1, 2),
+                                         [np.asarray(e.vertices, float) for e in excavations], tol)
     out = []
-    for b in scene.blocks:
-        v = np.asarray(b.vertices, float)
-        c = geometry.centroid(v)
-        exc = next((e.name for e in excavations
-                    if geometry.point_in_polygon(c, np.asarray(e.vertices, float), tol)), None)
+    for b, v, hit in zip(scene.blocks, verts, inside, strict=True):
+        exc = excavations[int(np.argmax(hit))].name if hit.any() else None
         out.append(_Piece(v, b.material, bool(b.fixed), exc, None))
     if scene.domain is not None:
         from jaxdem import rockmass
@@ -195,8 +205,8 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
     pieces = _pieces(scene, tol_geo * 1e3)
     polys = [p.vertices for p in pieces]
     n_rock = len(polys)
-    areas = np.array([geometry.signed_area(p) for p in polys])
-    cents = np.array([geometry.centroid(p) for p in polys])
+    areas = geometry.signed_areas(polys)
+    cents = geometry.centroids(polys)
     free_rock = np.array([not p.fixed for p in pieces])
     kept = free_rock & np.array([p.excavation is None for p in pieces])
     sizes = np.sqrt(areas[kept] if kept.any() else areas)
@@ -230,15 +240,15 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
     V = bucket(max(len(p) for p in all_polys))
     verts = np.zeros((N, V, 2))
     nv = np.zeros(N, np.int32)
-    for i, p in enumerate(all_polys):
-        verts[i, : len(p)] = p
-        verts[i, len(p):] = p[0]
-        nv[i] = len(p)
+    for n, idx, v in geometry.polygon_groups(all_polys):
+        verts[idx, :n] = v
+        verts[idx, n:] = v[:, :1]
+        nv[idx] = n
     vmask = np.arange(V)[None, :] < nv[:, None]
-    wall_cents = np.array([geometry.centroid(w) for w in walls]).reshape(-1, 2)
+    wall_cents = geometry.centroids(walls).reshape(-1, 2)
     all_cents = np.concatenate([cents, wall_cents, np.repeat(cents[:1], n_pad, axis=0)])
-    radius = np.array([np.max(np.linalg.norm(p - c, axis=1))
-                       for p, c in zip(all_polys, all_cents, strict=True)])
+    # Padded vertices repeat the first: the largest distance is the polygon's own.
+    radius = np.max(np.linalg.norm(verts - all_cents[:, None, :], axis=2), axis=1)
 
     kind = np.array([ROCK] * n_rock + wall_kind + [ROCK] * n_pad, np.int32)
     free = np.concatenate([free_rock, np.zeros(len(walls) + n_pad, bool)])
@@ -249,8 +259,10 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
     ks_inv = np.zeros(N)
     weight = np.zeros((N, D))
     cell_D = np.zeros((N if deformable else 0, 3, 3))
-    for i, pc in enumerate(pieces):
-        m = scene.materials[pc.material]
+    code = {name: k for k, name in enumerate(scene.materials)}
+    material_of = np.array([code[pc.material] for pc in pieces], np.int64)
+    for k, m in enumerate(scene.materials.values()):  # per material: D is a device array
+        i = np.nonzero(material_of == k)[0]
         kn_i, ks_i = intact_stiffness(m.E, m.nu)
         kn_inv[i], ks_inv[i] = 1.0 / kn_i, 1.0 / ks_i
         weight[i, 1] = -m.unit_weight * areas[i]
@@ -299,7 +311,7 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
     k_block = float(np.median(kn_inv[:n_rock]))
     finite_kn = joint_kn[np.isfinite(joint_kn)]
     k_ref = L / (L * k_block + (1.0 / float(np.median(finite_kn)) if finite_kn.size else 0.0))
-    rg2 = np.array([_polar_moment(p, c) for p, c in zip(all_polys, all_cents, strict=True)])
+    rg2 = geometry.polar_moments(all_polys, all_cents)
     pseudo_mass = s.regularization * k_ref * np.stack(
         [np.ones(N), np.ones(N)] + [rg2] * (D - 2), axis=1)
     f_ref = float(np.max(np.linalg.norm(f_ext[free, :2], axis=1), initial=0.0))
@@ -329,7 +341,7 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
         nv=_put(nv), vmask=_put(vmask), free=_put(free),
         kind=_put(kind), kn_inv=_put(kn_inv, dtype),
         ks_inv=_put(ks_inv, dtype),
-        area=_put(np.concatenate([areas, [geometry.signed_area(w) for w in walls],
+        area=_put(np.concatenate([areas, geometry.signed_areas(walls),
                                   np.repeat(areas[:1], n_pad)]), dtype),
         radius=_put(radius, dtype), f_ext=_put(f_ext, dtype),
         edge_joint=_put(edge_joint), joint_kn=_put(joint_kn, dtype),
@@ -373,10 +385,10 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
         exc = next(e for e in scene.excavations if e.name == sp.excavation)
         outline = np.asarray(exc.vertices, float)
         segs = list(zip(outline, np.roll(outline, -1, axis=0), strict=True))
-        keep = [i for i in range(n_rock) if excavation[i] != sp.excavation]
         # The load of a unit pressure: the support's load is linear in its pressure.
-        unit = _face_loads([polys[i] if i in keep else None for i in range(n_rock)], cents, N,
-                           segs, lambda n: -n, tol_geo * 1e3, D)
+        unit = _face_loads([polys[i] if excavation[i] != sp.excavation else None
+                            for i in range(n_rock)], cents, N, segs, lambda n: -n,
+                           tol_geo * 1e3, D)
         supports.append(dict(stage=sp.stage, excavation=sp.excavation, force=sp.pressure * unit,
                              unit=unit))
     for bd in scene.boundaries:
@@ -407,11 +419,13 @@ def _face_loads(polys, cents, n_blocks, segments, traction_of, tol, ndof=3):
     the centroid), exact for a uniform traction (the midpoint rule).
     """
     out = np.zeros((n_blocks, ndof))
+    live = [i for i, p in enumerate(polys) if p is not None]
+    boxes = geometry.bboxes([polys[i] for i in live])
     for p0, p1 in segments:
         p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
-        for i, p in enumerate(polys):
-            if p is None:
-                continue
+        for i in _near_segment(boxes, p0, p1, tol):
+            i = live[i]
+            p = polys[i]
             for a, b in _faces_on_segment(p, p0, p1, tol):
                 d = b - a
                 n = np.array([d[1], -d[0]]) / np.linalg.norm(d)
@@ -438,12 +452,13 @@ def _bolts(scene, polys, cents, pieces, tol) -> dict:
     ``share`` gives w.
     """
     rows = []
+    ends = np.array([[b.start, b.end] for b in scene.bolts], float).reshape(-1, 2, 2)
+    holds = geometry.points_in_polygons(ends.reshape(-1, 2), polys, tol).reshape(
+        len(ends), 2, len(polys))
+    holds &= np.array([pc.excavation is None for pc in pieces], bool)
     for i, b in enumerate(scene.bolts):
-        holders = []
-        for p in (np.asarray(b.start, float), np.asarray(b.end, float)):
-            inside = [k for k, poly in enumerate(polys)
-                      if pieces[k].excavation is None and geometry.point_in_polygon(p, poly, tol)]
-            holders.append([(k, p - cents[k]) for k in inside])
+        holders = [[(k, p - cents[k]) for k in np.nonzero(h)[0].tolist()]
+                   for p, h in zip(ends[i], holds[i], strict=True)]
         for k1, r1 in holders[0]:
             for k2, r2 in holders[1]:
                 w = 1.0 / (len(holders[0]) * len(holders[1]))
@@ -523,18 +538,6 @@ def linear_solver_for(choice: str, unknowns: int, *, platform: str | None = None
 def _tol_floor(dtype) -> float:
     """Smallest relative residual the dtype can reach reliably."""
     return float(200 * np.finfo(dtype).eps)
-
-
-def _polar_moment(poly, c):
-    """Polar moment of area about the centroid divided by the area, r_g^2 (m2)."""
-    p = poly - c
-    x0, y0 = p[:, 0], p[:, 1]
-    x1, y1 = np.roll(x0, -1), np.roll(y0, -1)
-    cross = x0 * y1 - x1 * y0
-    ixx = np.sum(cross * (y0**2 + y0 * y1 + y1**2)) / 12.0
-    iyy = np.sum(cross * (x0**2 + x0 * x1 + x1**2)) / 12.0
-    area = np.sum(cross) / 2.0
-    return (ixx + iyy) / area
 
 
 def _boxes(verts, margin):
@@ -623,15 +626,16 @@ def _locate_monitors(scene, polys, cents, tol, excavation) -> dict:
     (points, H, 2), H the largest number of holders of a point in the scene (unused
     entries have weight 0).
     """
+    points = [[m.point] if m.kind == "point" else [m.start, m.end] for m in scene.monitors]
+    flat = np.array([p for pts in points for p in pts], float).reshape(-1, 2)
+    holds = iter(geometry.points_in_polygons(flat, polys, tol))
     found = []
-    for m in scene.monitors:
-        pts = [m.point] if m.kind == "point" else [m.start, m.end]
+    for m, pts in zip(scene.monitors, points, strict=True):
         rows = []
         for p in pts:
-            p = np.asarray(p, float)
-            inside = [i for i, poly in enumerate(polys) if geometry.point_in_polygon(p, poly, tol)]
+            inside = np.nonzero(next(holds))[0].tolist()
             rock = [i for i in inside if excavation[i] is None]
-            rows.append((p, rock or inside[:1]))
+            rows.append((np.asarray(p, float), rock or inside[:1]))
         found.append((m, rows))
     H = max([len(h) for _, rows in found for _, h in rows], default=1)
     out = {}
