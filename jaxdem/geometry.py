@@ -290,6 +290,9 @@ def characteristic_length(v: np.ndarray) -> float:
     return math.sqrt(abs(signed_area(v)))
 
 
+_PAIR_SLICE = 2**22
+
+
 def find_overlapping_pairs(polys: Sequence[np.ndarray], tol_area: float) -> list[tuple[int, int]]:
     """Pairs ``(i, j)``, i < j, of convex CCW polygons whose intersection exceeds ``tol_area`` (m2).
 
@@ -301,22 +304,29 @@ def find_overlapping_pairs(polys: Sequence[np.ndarray], tol_area: float) -> list
     if n < 2:
         return []
     polys = [_as_poly(p) for p in polys]
-    boxes = np.array([bbox(p) for p in polys], dtype=np.float64)
+    boxes = bboxes(polys)
     order = np.argsort(boxes[:, 0], kind="stable")
     xmin, ymin, xmax, ymax = boxes[order].T
-    # ends[i]: first sorted index whose box starts at or after box i ends in x.
-    ends = np.searchsorted(xmin, xmax, side="left")
+    # ends[i]: first sorted index whose box starts at or after box i ends in x; the
+    # candidates of box i are i + 1 .. ends[i] - 1, all listed at once (in slices of
+    # about _PAIR_SLICE pairs, so that memory stays bounded when many boxes share an x-range).
+    first = np.arange(1, n + 1)
+    count = np.maximum(np.searchsorted(xmin, xmax, side="left") - first, 0)
+    total = np.cumsum(count)
     pairs: list[tuple[int, int]] = []
-    for i in range(n):
-        lo, hi = i + 1, int(ends[i])
-        if hi <= lo:
-            continue
-        js = np.arange(lo, hi)
-        hit = (ymin[js] < ymax[i]) & (ymax[js] > ymin[i]) & (xmax[js] > xmin[i])
-        for j in js[hit]:
+    start = 0
+    while start < n:
+        done = total[start] - count[start]  # pairs of the boxes before start
+        stop = min(max(int(np.searchsorted(total, done + _PAIR_SLICE)), start + 1), n)
+        c = count[start:stop]
+        ii = np.repeat(np.arange(start, stop), c)
+        jj = np.arange(len(ii)) - np.repeat(np.cumsum(c) - c, c) + np.repeat(first[start:stop], c)
+        hit = (ymin[jj] < ymax[ii]) & (ymax[jj] > ymin[ii]) & (xmax[jj] > xmin[ii])
+        for i, j in zip(ii[hit].tolist(), jj[hit].tolist(), strict=True):
             a, b = int(order[i]), int(order[j])
             if overlap_area(polys[a], polys[b]) > tol_area:
                 pairs.append((min(a, b), max(a, b)))
+        start = stop
     pairs.sort()
     return pairs
 
@@ -364,9 +374,9 @@ def split_by_line(
     v = _as_poly(v)
     d = v @ np.asarray(normal, dtype=np.float64) - offset
     d = np.where(np.abs(d) <= tol, 0.0, d)
-    if np.all(d >= 0.0):
+    if (d >= 0.0).all():
         return None, v
-    if np.all(d <= 0.0):
+    if (d <= 0.0).all():
         return v, None
     below: list[np.ndarray] = []
     above: list[np.ndarray] = []

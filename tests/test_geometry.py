@@ -162,7 +162,9 @@ def test_find_overlapping_pairs_touching_grid_and_one_shifted():
     assert g.find_overlapping_pairs(polys, 1e-9) == [(k, 4 * 100 + 7)]
 
 
-def test_find_overlapping_pairs_agrees_with_all_pairs():
+@pytest.mark.parametrize("pair_slice", [2**22, 7])
+def test_find_overlapping_pairs_agrees_with_all_pairs(monkeypatch, pair_slice):
+    monkeypatch.setattr(g, "_PAIR_SLICE", pair_slice)  # 7: candidates in many slices
     rng = np.random.default_rng(0)
     polys = [SQUARE * rng.uniform(0.2, 1.0) + rng.uniform(0, 5, size=2) for _ in range(60)]
     brute = [

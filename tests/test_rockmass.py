@@ -8,6 +8,8 @@ from collections import Counter
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from jaxdem import geometry
 from jaxdem.rockmass import RockMass, generate
@@ -380,3 +382,45 @@ def test_inclined_sets_at_scale():
     assert time.perf_counter() - t0 < 10.0
     assert 9_500 <= len(rm.pieces) <= 11_000
     assert total_area(rm) == pytest.approx(1e4, rel=1e-9)
+
+
+# --------------------------------------------------------------------------- clipping in one pass
+# _cutting.clip passes over the half-planes that hold a piece whole and stops at one that
+# holds nothing of it, decided for all half-planes at once: the answer is that of clipping
+# by every half-plane in turn, bit for bit.
+
+
+def _clip_in_turn(v, planes, tol):
+    for n, off, below in planes:
+        lo, hi = geometry.split_by_line(v, n, off, tol)
+        v = lo if below else hi
+        if v is None:
+            return None
+    return v
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    n=st.integers(3, 12),
+    k=st.integers(1, 40),
+    seed=st.integers(0, 2**32 - 1),
+    centre=st.floats(-1e5, 1e5),
+    tol=st.sampled_from([0.0, 1e-9, 1e-4]),
+)
+def test_clip_agrees_with_half_planes_in_turn(n, k, seed, centre, tol):
+    from jaxdem.rockmass._cutting import clip
+
+    rng = np.random.default_rng(seed)
+    a = np.sort(rng.uniform(0.0, 2.0 * np.pi, n))
+    v = centre + rng.uniform(0.5, 5.0) * np.stack([np.cos(a), np.sin(a)], axis=1)
+    planes = []
+    for _ in range(k):
+        t = rng.uniform(0.0, 2.0 * np.pi)
+        nrm = np.array([math.cos(t), math.sin(t)])
+        # Offsets through the polygon, beyond it, and through a vertex (grazing).
+        off = float(nrm @ v[rng.integers(n)]) + rng.choice([0.0, rng.normal(0.0, 3.0), 10.0])
+        planes.append((nrm, off, bool(rng.integers(2))))
+    got, want = clip(v, planes, tol), _clip_in_turn(v, planes, tol)
+    assert (got is None) == (want is None)
+    if want is not None:
+        np.testing.assert_array_equal(got, want)

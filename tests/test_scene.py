@@ -656,6 +656,85 @@ def test_ten_thousand_blocks_validate_quickly():
         parse_scene(data)
 
 
+# ------------------------------------------------------------------- blocks checked in a batch
+# Plain [[blocks]] polygons are read and cleared all at once (convex_polygons_pass); what the
+# batch does not clear goes through check_polygon, so the first problem in block order is
+# still the one named.
+
+
+def _many_blocks(n: int = 300) -> dict:
+    square = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    data = valid_scene_dict()
+    data["blocks"] = [{"vertices": (square + [i % 20, i // 20]).tolist(), "material": "rock"}
+                      for i in range(n)]
+    data["discontinuities"] = []
+    data["boundaries"] = []
+    data["monitors"] = [{"name": "m", "point": [0.5, 0.5]}]
+    return data
+
+
+@pytest.mark.parametrize(
+    ("changes", "path", "words"),
+    [
+        ({150: lambda v: v[::-1]}, "blocks.150.vertices", "vertices are clockwise"),
+        ({150: lambda v: v[:1] + [[v[0][0] + 0.5, v[0][1]]] + v[1:]}, "blocks.150.vertices",
+         "degenerate vertex 1 (10.5, 7): collinear"),
+        ({150: lambda v: v[:1] + [[v[0][0] + 1e-12, v[0][1]]] + v[1:]}, "blocks.150.vertices",
+         "repeated point"),
+        ({150: lambda v: [v[0], v[2], v[1], v[3]]}, "blocks.150.vertices", "self-intersecting"),
+        ({150: lambda v: [v[0], v[1], [v[0][0] + 0.5, v[0][1] + 0.2], v[3]]},
+         "blocks.150.vertices", "is not convex at vertex 2"),
+        ({150: lambda v: [[True, 7.0]] + v[1:]}, "blocks.150.vertices.0.0", "must be a number"),
+        ({150: lambda v: [[math.nan, 7.0]] + v[1:]}, "blocks.150.vertices.0.0", "must be finite"),
+        ({150: lambda v: v[:2]}, "blocks.150.vertices", "needs at least 3 points"),
+        # The first problem in block order, whatever its kind.
+        ({40: "material", 150: lambda v: v[::-1]}, "blocks.40.material", "unknown material"),
+        ({40: lambda v: v[::-1], 150: "material"}, "blocks.40.vertices", "clockwise"),
+    ],
+)
+def test_blocks_checked_in_a_batch_name_the_first_problem(changes, path, words):
+    data = _many_blocks()
+    parse_scene(copy.deepcopy(data))
+    for i, change in changes.items():
+        if change == "material":
+            data["blocks"][i]["material"] = "granite"
+        else:
+            data["blocks"][i]["vertices"] = change(data["blocks"][i]["vertices"])
+    with pytest.raises(SceneError) as info:
+        parse_scene(data)
+    assert info.value.path == path
+    assert words in str(info.value)
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    n=st.integers(3, 10),
+    angles=st.lists(st.floats(0.0, 2.0 * math.pi), min_size=10, max_size=10),
+    radii=st.lists(st.floats(0.2, 1.0), min_size=10, max_size=10),
+    scale=st.floats(1e-3, 1e3),
+    centre=st.floats(-1e5, 1e5),
+    order=st.sampled_from(["sorted", "reversed", "as drawn"]),
+    nudge=st.sampled_from([0.0, 1e-13, 1e-10, 1e-8]),
+)
+def test_batch_clears_only_what_check_polygon_accepts(n, angles, radii, scale, centre, order,
+                                                      nudge):
+    from jaxdem.scene._checks import check_polygon, convex_polygons_pass
+
+    a = np.array(angles[:n])
+    a = {"sorted": np.sort(a), "reversed": np.sort(a)[::-1], "as drawn": a}[order]
+    v = centre + scale * np.array(radii[:n])[:, None] * np.stack([np.cos(a), np.sin(a)], axis=1)
+    # A vertex moved onto (or just off) the midpoint of an edge or onto a neighbour.
+    polys = [v, np.insert(v, 1, 0.5 * (v[0] + v[1]) + nudge * scale, axis=0),
+             np.insert(v, 1, v[0] + nudge * scale, axis=0)]
+    for p, cleared in zip(polys, convex_polygons_pass(polys), strict=True):
+        try:
+            check_polygon(p, "p")
+            accepted = True
+        except SceneError:
+            accepted = False
+        assert accepted or not cleared
+
+
 # --------------------------------------------------------------------------- rock-mass sections
 
 

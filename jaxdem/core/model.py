@@ -177,10 +177,11 @@ def _pieces(scene, tol) -> list[_Piece]:
     verts = [np.asarray(b.vertices, float) for b in scene.blocks]
     inside = geometry.points_in_polygons(geometry.centroids(verts).reshape(-1, 2),
                                          [np.asarray(e.vertices, float) for e in excavations], tol)
-    out = []
-    for b, v, hit in zip(scene.blocks, verts, inside, strict=True):
-        exc = excavations[int(np.argmax(hit))].name if hit.any() else None
-        out.append(_Piece(v, b.material, bool(b.fixed), exc, None))
+    names = [e.name for e in excavations] + [None]
+    first = (np.where(inside.any(axis=1), np.argmax(inside, axis=1), len(excavations)).tolist()
+             if excavations else [0] * len(verts))
+    out = [_Piece(v, b.material, bool(b.fixed), names[k], None)
+           for b, v, k in zip(scene.blocks, verts, first, strict=True)]
     if scene.domain is not None:
         from jaxdem import rockmass
 

@@ -44,9 +44,7 @@ class Work:
         return len(self.polys)
 
     def boxes(self) -> np.ndarray:
-        lo = np.array([p.min(axis=0) for p in self.polys]).reshape(-1, 2)
-        hi = np.array([p.max(axis=0) for p in self.polys]).reshape(-1, 2)
-        return np.concatenate([lo, hi], axis=1)
+        return geometry.bboxes(self.polys).reshape(-1, 4)
 
     def replace(self, i: int, parts: list[np.ndarray]) -> None:
         """Piece i becomes parts[0]; the other parts are appended with i's tags."""
@@ -132,10 +130,34 @@ def _wedges(part: np.ndarray) -> list[list[tuple[np.ndarray, float, bool]]]:
     return out
 
 
+def _outside(v: np.ndarray, normals: np.ndarray, offsets: np.ndarray, below: np.ndarray,
+             tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per half-plane (normal . x <= offset where ``below``, >= otherwise): whether convex
+    ``v`` lies wholly outside it, and whether wholly inside, both by more than a margin
+    (2 tol, plus the round-off of coordinates far from (0, 0)): the parts that clipping by
+    other half-planes leaves of ``v`` lie there too, and each such half-plane empties them,
+    or leaves them whole (:func:`geometry.split_by_line` puts points within tol on the line)."""
+    margin = 2.0 * tol + 1e-12 * (float(np.max(np.abs(v))) + float(np.max(np.abs(offsets))))
+    d = v @ normals.T - offsets
+    s = np.where(below, d, -d)  # > 0: on the side clipped away
+    return s.min(axis=0) > margin, s.max(axis=0) < -margin
+
+
 def clip(v: np.ndarray, planes: list[tuple[np.ndarray, float, bool]], tol: float):
-    for n, off, below in planes:
+    """Convex ``v`` clipped by the half-planes ``(normal, offset, keep_below)`` in turn; None
+    if nothing is left. Half-planes that hold ``v`` whole are passed over (:func:`_outside`)."""
+    if not planes:
+        return v
+    normals = np.array([n for n, _, _ in planes], dtype=np.float64)
+    offsets = np.array([off for _, off, _ in planes], dtype=np.float64)
+    below = np.array([b for _, _, b in planes], dtype=bool)
+    outside, inside = _outside(v, normals, offsets, below, tol)
+    if outside.any():
+        return None
+    for k in np.nonzero(~inside)[0]:
+        n, off, keep_below = planes[k]
         lo, hi = geometry.split_by_line(v, n, off, tol)
-        v = lo if below else hi
+        v = lo if keep_below else hi
         if v is None:
             return None
     return v
@@ -154,6 +176,10 @@ def cut_by_region(
         box = geometry.bbox(part)
         inside_planes = [(n, off, True) for n, off, _ in (w[2] for w in _wedges(part))]
         wedges = _wedges(part)
+        # All the wedges' half-planes, to pass over the wedges a piece lies wholly outside.
+        w_normals = np.array([[n for n, _, _ in w] for w in wedges]).reshape(-1, 2)
+        w_offsets = np.array([[off for _, off, _ in w] for w in wedges]).ravel()
+        w_below = np.array([[b for _, _, b in w] for w in wedges]).ravel()
         boxes = work.boxes()
         cand = np.nonzero(
             (boxes[:, 0] < box[2] - tol)
@@ -171,8 +197,9 @@ def cut_by_region(
                 parts = [v]
             else:
                 parts = [inner]
-                for planes in wedges:
-                    w = clip(v, planes, tol)
+                outside, _ = _outside(v, w_normals, w_offsets, w_below, tol)
+                for k in np.nonzero(~outside.reshape(len(wedges), 3).any(axis=1))[0]:
+                    w = clip(v, wedges[k], tol)
                     if w is not None and piece_area(w) > area_tol:
                         parts.append(w)
             work.replace(i, parts)
@@ -207,6 +234,15 @@ def _is_sliver(v: np.ndarray, a: float, lmin: float) -> bool:
     return a < TINY_AREA * lmin * lmin or a < SLIVER_RATIO * emax * emax
 
 
+def _thin(polys: list[np.ndarray], areas: np.ndarray, lmin: float) -> np.ndarray:
+    """:func:`_is_sliver` of every piece at once."""
+    emax = np.zeros(len(polys))
+    for _, idx, v in geometry.polygon_groups(polys):
+        e = np.roll(v, -1, axis=1) - v
+        emax[idx] = np.max(np.hypot(e[..., 0], e[..., 1]), axis=1)
+    return (areas < TINY_AREA * lmin * lmin) | (areas < SLIVER_RATIO * emax * emax)
+
+
 def merge_slivers(
     work: Work, keys: list[Any], lmin: float, tol: float, eps_area: float
 ) -> list[int]:
@@ -214,8 +250,9 @@ def merge_slivers(
     n = len(work)
     if n < 2:
         return []
-    areas = np.array([piece_area(v) for v in work.polys])
-    slivers = [i for i in np.argsort(areas) if _is_sliver(work.polys[i], areas[i], lmin)]
+    areas = geometry.signed_areas(work.polys)
+    thin = _thin(work.polys, areas, lmin)
+    slivers = [i for i in np.argsort(areas) if thin[i]]
     if not slivers:
         return []
     codes = {k: c for c, k in enumerate(dict.fromkeys(keys))}

@@ -156,20 +156,15 @@ def generate(scene: Scene) -> RockMass:
         merge_slivers(work, list(work.parent), lmin, tol, eps_area)
         triangulate(work, float(dom.mesh_size), np.array(box[:2]), tol)
 
-    polys = []
-    keep = []
-    for i, v in enumerate(work.polys):
-        u = geometry.drop_collinear(v, tol)
-        if len(u) >= 3 and piece_area(u) > 0.0:
-            polys.append(u)
-            keep.append(i)
+    dropped = geometry.drop_collinear_all(work.polys, tol)
+    areas = geometry.signed_areas(dropped)
+    keep = [i for i, u in enumerate(dropped) if len(u) >= 3 and areas[i] > 0.0]
+    polys = [dropped[i] for i in keep]
     kind, names, _, starts = label_edges(polys, outline, families, lines, tol)
     words = ("intact", "joint", "outer")
-    pieces = []
-    for n, i in enumerate(keep):
-        labels = [
-            (words[kind[k]], names[k] if kind[k] == 1 else None)
-            for k in range(starts[n], starts[n + 1])
-        ]
-        pieces.append(Piece(polys[n], work.material[i], work.excavation[i], labels))
+    labels = [(words[k], name if k == 1 else None)
+              for k, name in zip(kind.tolist(), names, strict=True)]
+    starts = starts.tolist()
+    pieces = [Piece(polys[n], work.material[i], work.excavation[i],
+                    labels[starts[n]:starts[n + 1]]) for n, i in enumerate(keep)]
     return RockMass(pieces=pieces)

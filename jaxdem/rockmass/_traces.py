@@ -160,8 +160,10 @@ def label_edges(
     counts = np.array([len(v) for v in polys])
     starts = np.concatenate([[0], np.cumsum(counts)])
     A = np.concatenate(polys)
-    B = np.concatenate([np.roll(v, -1, axis=0) for v in polys])
     ne = len(A)
+    following = np.arange(1, ne + 1)  # the next vertex of each piece, cyclically
+    following[starts[1:] - 1] = starts[:-1]
+    B = A[following]
     kind = np.zeros(ne, dtype=np.int8)
     name_idx = np.full(ne, -1)
     src_idx = np.full(ne, -1)

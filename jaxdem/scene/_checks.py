@@ -86,6 +86,83 @@ def check_polygon(v: np.ndarray, path: str, *, convex: bool = True) -> None:
             )
 
 
+_BATCH_POINTS = 32
+"""Polygons of up to this many vertices are cleared by :func:`convex_polygons_pass` all at
+once; larger ones (rare among blocks) go through :func:`check_polygon` one by one."""
+
+
+def convex_polygons_pass(polys: list[np.ndarray]) -> np.ndarray:
+    """True where :func:`check_polygon` (``convex=True``) certainly accepts the polygon, found
+    for all polygons at once (NumPy over groups of equal vertex count).
+
+    Each of its tests is made with twice its tolerance (vertices at least 2e-9 of the
+    diagonal apart, thickness and area above 2e-12 of it, corner sines above 2e-9, edges
+    that are not neighbours at least 2e-12 of it apart and not crossing): a polygon
+    cleared here passes the scalar checks whatever the round-off. False means "not
+    cleared": :func:`check_polygon` then decides and names the problem.
+    """
+    ok = np.zeros(len(polys), dtype=bool)
+    for n, idx, v in geometry.polygon_groups(polys):
+        if 3 <= n <= _BATCH_POINTS:
+            ok[idx] = _group_passes(v)
+    return ok
+
+
+def _segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distance (m) from points p to segments a-b, all (..., 2)."""
+    d = b - a
+    len2 = d[..., 0] ** 2 + d[..., 1] ** 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(len2 > 0.0, np.sum((p - a) * d, axis=-1) / len2, 0.0)
+    q = a + np.clip(t, 0.0, 1.0)[..., None] * d
+    return np.hypot(p[..., 0] - q[..., 0], p[..., 1] - q[..., 1])
+
+
+def _group_passes(v: np.ndarray) -> np.ndarray:
+    """:func:`convex_polygons_pass` of polygons ``v`` (m, n, 2) of one vertex count."""
+    n = v.shape[1]
+    ext = v.max(axis=1) - v.min(axis=1)
+    diag = np.hypot(ext[:, 0], ext[:, 1])
+    # Repeated points.
+    i, j = np.triu_indices(n, k=1)
+    gap = np.hypot(*(v[:, i] - v[:, j]).transpose(2, 0, 1))
+    ok = np.all(gap > 2e-9 * diag[:, None], axis=1)
+    # All points on one line; clockwise or near-zero area.
+    centred = v - v.mean(axis=1, keepdims=True)
+    _, _, vt = np.linalg.svd(centred, full_matrices=False)
+    ok &= np.ptp(np.einsum("mnk,mk->mn", centred, vt[:, -1]), axis=1) > 2e-12 * diag
+    ok &= geometry.signed_areas(list(v)) > 2e-12 * diag * diag
+    # Reflex and 180-degree corners.
+    e = np.roll(v, -1, axis=1) - v
+    ep = np.roll(e, 1, axis=1)
+    lens = np.hypot(e[..., 0], e[..., 1])
+    turn = ep[..., 0] * e[..., 1] - ep[..., 1] * e[..., 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sines = turn / (lens * np.roll(lens, 1, axis=1))
+    ok &= np.all(sines > 2e-9, axis=1)
+    # Self-intersection: an edge folding back over the next, two other edges crossing or
+    # touching (geometry.self_intersects).
+    tol = 2e-12 * diag[:, None]
+    a, b, c = v, np.roll(v, -1, axis=1), np.roll(v, -2, axis=1)
+    ok &= np.all((_segment_distance(c, a, b) > tol) & (_segment_distance(a, b, c) > tol), axis=1)
+    pairs = [(p, q) for p in range(n) for q in range(p + 2, n) if not (p == 0 and q == n - 1)]
+    if pairs:
+        p, q = np.array(pairs).T
+        a0, a1, b0, b1 = v[:, p], v[:, (p + 1) % n], v[:, q], v[:, (q + 1) % n]
+
+        def orient(x, y, z):
+            return ((y[..., 0] - x[..., 0]) * (z[..., 1] - x[..., 1])
+                    - (y[..., 1] - x[..., 1]) * (z[..., 0] - x[..., 0]))
+
+        d1, d2 = orient(b0, b1, a0), orient(b0, b1, a1)
+        d3, d4 = orient(a0, a1, b0), orient(a0, a1, b1)
+        cross = (np.sign(d1) * np.sign(d2) < 0.0) & (np.sign(d3) * np.sign(d4) < 0.0)
+        near = np.minimum(np.minimum(_segment_distance(a0, b0, b1), _segment_distance(a1, b0, b1)),
+                          np.minimum(_segment_distance(b0, a0, a1), _segment_distance(b1, a0, a1)))
+        ok &= np.all(~cross & (near > tol), axis=1)
+    return ok
+
+
 def read_polygon(t: dict, key: str, path: str, far: tuple[float, str] | None = None) -> np.ndarray:
     """A required simple CCW polygon field (may be non-convex), read-only. ``far``: (model
     size, dtype) to refuse first a vertex too far away (that spoils the checks' tolerance)."""
@@ -117,8 +194,8 @@ def check_overlaps(blocks: tuple[Block, ...]) -> None:
     if not blocks:
         return
     polys = [b.vertices for b in blocks]
-    areas = [geometry.signed_area(v) for v in polys]
-    pairs = geometry.find_overlapping_pairs(polys, 1e-9 * min(areas))
+    areas = geometry.signed_areas(polys)
+    pairs = geometry.find_overlapping_pairs(polys, 1e-9 * float(np.min(areas)))
     bad = []
     for i, j in pairs:
         a, depth = overlap_depth(polys[i], polys[j])
@@ -140,7 +217,7 @@ def _shared_faces(blocks: tuple[Block, ...], tol: float) -> list[tuple[int, int,
     """(i, j, p, q): blocks i < j share the segment p-q of a face (anti-parallel edges on
     one line, overlapping by more than ``tol``)."""
     out = []
-    boxes = np.array([geometry.bbox(b.vertices) for b in blocks]).reshape(-1, 4)
+    boxes = geometry.bboxes([b.vertices for b in blocks]).reshape(-1, 4)
     for i in range(len(blocks)):
         near = np.nonzero((boxes[i + 1:, 0] <= boxes[i, 2] + tol)
                           & (boxes[i, 0] <= boxes[i + 1:, 2] + tol)
@@ -259,7 +336,7 @@ class Rock:
         tol: float,
     ) -> None:
         self.blocks = blocks
-        self.boxes = np.array([geometry.bbox(b.vertices) for b in blocks]).reshape(-1, 4)
+        self.boxes = geometry.bboxes([b.vertices for b in blocks]).reshape(-1, 4)
         self.domain = domain
         self.excavations = excavations
         self.tol = tol

@@ -15,12 +15,18 @@ import math
 import numpy as np
 
 from jaxdem import geometry
-from jaxdem.scene._checks import check_polygon, read_polygon, segment_touches_box
+from jaxdem.scene._checks import (
+    check_polygon,
+    convex_polygons_pass,
+    read_polygon,
+    segment_touches_box,
+)
 from jaxdem.scene._fields import (
     SceneError,
     defined_name,
     fmt,
     fmt_point,
+    plain_vertices,
     read_array_of_tables,
     read_field,
     read_name,
@@ -64,6 +70,13 @@ def parse_blocks(
             "blocks",
             "at least one block is needed ([[blocks]] vertices, material), or a [domain]",
         )
+    # The polygons given as plain lists of numbers are read and checked all at once; any
+    # other, or one that the batch does not clear, is read and checked in turn below
+    # (where the first problem, in block order, is named).
+    plain = [plain_vertices(raw.get("vertices")) for raw in raw_blocks]
+    listed = [i for i, v in enumerate(plain) if v is not None]
+    cleared = np.zeros(len(raw_blocks), dtype=bool)
+    cleared[listed] = convex_polygons_pass([plain[i] for i in listed])
     blocks = []
     for i, raw in enumerate(raw_blocks):
         p = f"blocks.{i}"
@@ -71,8 +84,11 @@ def parse_blocks(
         if "vertices" not in t:
             raise SceneError(f"{p}.vertices", "required field is missing")
         vp = f"{p}.vertices"
-        v = read_vertices(t["vertices"], vp)
-        check_polygon(v, vp)
+        if cleared[i]:
+            v = plain[i]
+        else:
+            v = read_vertices(t["vertices"], vp)
+            check_polygon(v, vp)
         v.setflags(write=False)
         mat = _material_ref(t, p, materials)
         fixed = t.get("fixed", False)
