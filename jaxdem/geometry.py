@@ -35,6 +35,7 @@ __all__ = [
     "find_overlapping_pairs",
     "has_repeated_points",
     "is_convex",
+    "near_box_pairs",
     "overlap_area",
     "point_in_polygon",
     "point_on_segment",
@@ -291,6 +292,41 @@ def characteristic_length(v: np.ndarray) -> float:
 
 
 _PAIR_SLICE = 2**22
+
+
+def near_box_pairs(boxes: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs ``(i, j)``, i < j, of boxes ``(xmin, ymin, xmax, ymax)`` (N, 4) that overlap or
+    lie within ``tol`` (m) of each other in x and in y, as two arrays in increasing (i, j).
+
+    Sweep and prune, as :func:`find_overlapping_pairs`: N log N plus the number of boxes
+    that overlap in x (listed in slices of about ``_PAIR_SLICE`` pairs).
+    """
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+    n = len(boxes)
+    order = np.argsort(boxes[:, 0], kind="stable")
+    xmin = boxes[order, 0]
+    first = np.arange(1, n + 1)
+    count = np.maximum(np.searchsorted(xmin, boxes[order, 2] + tol, side="right") - first, 0)
+    total = np.cumsum(count)
+    found_i, found_j = [], []
+    start = 0
+    while start < n:
+        done = total[start] - count[start]
+        stop = min(max(int(np.searchsorted(total, done + _PAIR_SLICE)), start + 1), n)
+        c = count[start:stop]
+        s = np.repeat(np.arange(start, stop), c)
+        t = np.arange(len(s)) - np.repeat(np.cumsum(c) - c, c) + np.repeat(first[start:stop], c)
+        i, j = np.minimum(order[s], order[t]), np.maximum(order[s], order[t])
+        bi, bj = boxes[i], boxes[j]
+        near = ((bj[:, 0] <= bi[:, 2] + tol) & (bi[:, 0] <= bj[:, 2] + tol)
+                & (bj[:, 1] <= bi[:, 3] + tol) & (bi[:, 1] <= bj[:, 3] + tol))
+        found_i.append(i[near])
+        found_j.append(j[near])
+        start = stop
+    i = np.concatenate(found_i) if found_i else np.zeros(0, np.int64)
+    j = np.concatenate(found_j) if found_j else np.zeros(0, np.int64)
+    key = np.lexsort((j, i))
+    return i[key], j[key]
 
 
 def find_overlapping_pairs(polys: Sequence[np.ndarray], tol_area: float) -> list[tuple[int, int]]:

@@ -268,3 +268,18 @@ def test_drop_collinear_all_agrees_with_scalar(polys, data):
     tol = data.draw(st.sampled_from([0.0, 1e-9, 1e-6]))
     for got, p in zip(g.drop_collinear_all(polys, tol), polys, strict=True):
         np.testing.assert_array_equal(got, g.drop_collinear(p, tol))
+
+
+@pytest.mark.parametrize("pair_slice", [2**22, 5])
+@pytest.mark.parametrize("tol", [0.0, 0.05])
+def test_near_box_pairs_agrees_with_all_pairs(monkeypatch, pair_slice, tol):
+    monkeypatch.setattr(g, "_PAIR_SLICE", pair_slice)  # 5: candidates in many slices
+    rng = np.random.default_rng(1)
+    lo = np.round(rng.uniform(0, 6, size=(80, 2)), 1)  # rounded: boxes that touch exactly
+    boxes = np.concatenate([lo, lo + np.round(rng.uniform(0.1, 1.5, size=(80, 2)), 1)], axis=1)
+    brute = [(i, j) for i in range(80) for j in range(i + 1, 80)
+             if boxes[j, 0] <= boxes[i, 2] + tol and boxes[i, 0] <= boxes[j, 2] + tol
+             and boxes[j, 1] <= boxes[i, 3] + tol and boxes[i, 1] <= boxes[j, 3] + tol]
+    i, j = g.near_box_pairs(boxes, tol)
+    assert list(zip(i.tolist(), j.tolist(), strict=True)) == brute
+    assert [len(a) for a in g.near_box_pairs(np.zeros((0, 4)), tol)] == [0, 0]

@@ -212,32 +212,29 @@ def check_overlaps(blocks: tuple[Block, ...]) -> None:
         )
 
 
-def _shared_faces(blocks: tuple[Block, ...], tol: float) -> list[tuple[int, int, np.ndarray,
-                                                                         np.ndarray]]:
-    """(i, j, p, q): blocks i < j share the segment p-q of a face (anti-parallel edges on
-    one line, overlapping by more than ``tol``)."""
+def _shared_faces(blocks: tuple[Block, ...], tol: float,
+                  labels: list[str]) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+    """(i, j, p, q): blocks i < j of different ``labels`` share the segment p-q of a face
+    (anti-parallel edges on one line, overlapping by more than ``tol``)."""
     out = []
-    boxes = geometry.bboxes([b.vertices for b in blocks]).reshape(-1, 4)
-    for i in range(len(blocks)):
-        near = np.nonzero((boxes[i + 1:, 0] <= boxes[i, 2] + tol)
-                          & (boxes[i, 0] <= boxes[i + 1:, 2] + tol)
-                          & (boxes[i + 1:, 1] <= boxes[i, 3] + tol)
-                          & (boxes[i, 1] <= boxes[i + 1:, 3] + tol))[0] + i + 1
-        va = blocks[i].vertices
-        for j in near:
-            vb = blocks[j].vertices
-            for a0, a1 in zip(va, np.roll(va, -1, axis=0), strict=True):
-                d = a1 - a0
-                L = float(np.hypot(*d))
-                t = d / L
-                n = np.array([-t[1], t[0]])
-                for b0, b1 in zip(vb, np.roll(vb, -1, axis=0), strict=True):
-                    if abs((b0 - a0) @ n) > tol or abs((b1 - a0) @ n) > tol:
-                        continue
-                    lo = max(0.0, min((b0 - a0) @ t, (b1 - a0) @ t))
-                    hi = min(L, max((b0 - a0) @ t, (b1 - a0) @ t))
-                    if hi - lo > tol and (b1 - b0) @ t < 0.0:
-                        out.append((i, int(j), a0 + lo * t, a0 + hi * t))
+    codes = {name: k for k, name in enumerate(dict.fromkeys(labels))}
+    code = np.array([codes[name] for name in labels])
+    near_i, near_j = geometry.near_box_pairs(geometry.bboxes([b.vertices for b in blocks]), tol)
+    differ = code[near_i] != code[near_j]
+    for i, j in zip(near_i[differ].tolist(), near_j[differ].tolist(), strict=True):
+        va, vb = blocks[i].vertices, blocks[j].vertices
+        for a0, a1 in zip(va, np.roll(va, -1, axis=0), strict=True):
+            d = a1 - a0
+            L = float(np.hypot(*d))
+            t = d / L
+            n = np.array([-t[1], t[0]])
+            for b0, b1 in zip(vb, np.roll(vb, -1, axis=0), strict=True):
+                if abs((b0 - a0) @ n) > tol or abs((b1 - a0) @ n) > tol:
+                    continue
+                lo = max(0.0, min((b0 - a0) @ t, (b1 - a0) @ t))
+                hi = min(L, max((b0 - a0) @ t, (b1 - a0) @ t))
+                if hi - lo > tol and (b1 - b0) @ t < 0.0:
+                    out.append((i, j, a0 + lo * t, a0 + hi * t))
     return out
 
 
@@ -284,8 +281,8 @@ def check_block_joints(blocks: tuple[Block, ...], discs: tuple, joints: dict,
     if len(joints) < 2 or all(b.joint is None for b in blocks):
         return
     own = [b.joint if b.joint is not None else default_joint for b in blocks]
-    for i, j, p, q in _shared_faces(blocks, tol):
-        if own[i] != own[j] and not _on_discontinuity(p, q, discs, tol):
+    for i, j, p, q in _shared_faces(blocks, tol, own):
+        if not _on_discontinuity(p, q, discs, tol):
             which = {i: "joint" if blocks[i].joint is not None else "default_joint",
                      j: "joint" if blocks[j].joint is not None else "default_joint"}
             path = f"blocks.{j}.joint" if blocks[j].joint is not None else f"blocks.{i}.joint"
