@@ -3,7 +3,10 @@
 A polygon is an ``(n, 2)`` array of vertices in m, listed once (the first vertex is
 not repeated at the end). The convex routines expect counter-clockwise order, as the
 scene files do. Nothing here is traced by JAX: it runs once, before any computation,
-to validate and prepare scenes.
+to validate and prepare scenes. The functions of plural name (``signed_areas``,
+``centroids``, ``polar_moments``, ``bboxes``, ``points_in_polygons``,
+``drop_collinear_all``) answer for a whole list of polygons at once, as the singular
+ones would one by one (a scene of 10,000 blocks has no Python loop over its blocks).
 
 Example::
 

@@ -424,8 +424,8 @@ def _face_loads(polys, cents, n_blocks, segments, traction_of, tol, ndof=3):
     boxes = geometry.bboxes([polys[i] for i in live])
     for p0, p1 in segments:
         p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
-        for i in _near_segment(boxes, p0, p1, tol):
-            i = live[i]
+        for k in _near_segment(boxes, p0, p1, tol):
+            i = live[k]
             p = polys[i]
             for a, b in _faces_on_segment(p, p0, p1, tol):
                 d = b - a
