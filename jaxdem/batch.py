@@ -349,7 +349,7 @@ class _BatchDriver:
                                                    (C, self.model.n_bolts)))
         return loads, None
 
-    def step(self, stage, k, n, loads):
+    def step(self, stage, k, n, loads, released=None):
         loads = loads[0]
         fn_jit = _increment_fn(self.devices)
         while True:
@@ -376,7 +376,8 @@ class _BatchDriver:
         self.status_of = np.where(self.live, status, self.status_of)
         self.live &= status == Status.CONVERGED.code
         self.records.append(dict(stage=stage, step=k, load_factor=k / n,
-                                 live=int(self.live.sum())))
+                                 live=int(self.live.sum()),
+                                 **({} if released is None else dict(released=released))))
         return bool(self.live.any())
 
     def release(self, removed):

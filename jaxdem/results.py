@@ -54,7 +54,10 @@ class Result:
         (relative global force imbalance per increment), ``max_slip`` and
         ``max_opening`` (m, the largest joint slip and opening in each
         increment), ``monitors``
-        (monitor name -> value after each increment).
+        (monitor name -> value after each increment); in a scene where an excavation's
+        load is released over several stages (``release``), also ``released``
+        (excavation name -> the fraction of its load released after each increment, for
+        the excavations whose load the stage releases).
       moving_blocks: ids of the blocks that kept moving when a mechanism was found.
       equilibrium: global balance of the final state: ``applied`` [Fx, Fy, M]
         (kN/m, kN m/m), ``reaction`` (forces from fixed blocks and walls on the
@@ -453,6 +456,8 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
             "max_slip": [r.get("slip", 0.0) for r in recs],
             "max_opening": [r.get("opening", 0.0) for r in recs],
             "monitors": {m: [_scalar(h["monitors"][m]) for h in hist] for m in monitors},
+            **({"released": {e: [r["released"][e] for r in recs] for e in recs[0]["released"]}}
+               if "released" in recs[0] else {}),
         })
     bolts = scene_bolts(scene, layout, state)
     imbalance_tol = IMBALANCE_FACTOR * float(model.tol)

@@ -133,13 +133,25 @@ def run(scene, model: Model, state: State, layout, data: Data, progress=None,
     d.ref, d.dref = (d.state, d.dstate) if started else (None, None)
     if stage_end is not None:
         stage_end(d, "initial")
+    # The excavations whose load is being released (RS2's load split): the forces their
+    # blocks carried on the rock (``load``, (1 + p, N, D)), the fraction of it still held at
+    # the start of the stage (``before``), and after it and each stage to come (``held``,
+    # from ``Excavation.held``).
+    releasing: list[dict] = []
+    relaxed = any(len(e.release) > 1 for e in scene.excavations)
     for stage in plan:
         if d.status != Status.CONVERGED:
             break
         removed = np.zeros(N, bool)
         removed[:layout.n_rock] = [e is not None and e in stage["excavations"]
                                    for e in layout.excavation]
-        release = d.release(removed)
+        for names, mask, held in _release_groups(stage["excavations"], layout, N):
+            load = d.release(mask)
+            if not np.array_equal(mask, removed):
+                # Several schedules in one stage: what these blocks pushed on the blocks
+                # removed with them is on no block left.
+                load = np.where((removed & ~mask)[None, :, None], 0.0, load)
+            releasing.append(dict(names=names, load=load, before=1.0, held=held))
         if removed.any():
             alive = np.asarray(d.state.alive) & ~removed
             d.state = dataclasses.replace(d.state, alive=jnp.asarray(alive))
@@ -154,14 +166,38 @@ def run(scene, model: Model, state: State, layout, data: Data, progress=None,
         n = stage["load_steps"] or layout.load_steps
         for k in range(1, n + 1):
             lam = k / n
-            force = base + (1 - lam) * release + lam * (pending + support)
-            if not d.step(stage["name"], k, n, d.loads(force, (1 - lam) * y_old + lam * y_new)):
+            # What is still held of each release, from ``before`` down to ``held[0]``
+            # (1 - lam of it for a release in one stage).
+            still = [r["before"] - lam * (r["before"] - r["held"][0]) for r in releasing]
+            parts = [h * r["load"] for h, r in zip(still, releasing, strict=True)]
+            release = sum(parts[1:], parts[0]) if parts else zero
+            force = base + release + lam * (pending + support)
+            # (rounded to 12 digits for the record: 0.08, not 0.08000000000000007)
+            released = ({name: round(1.0 - h, 12) for h, r in zip(still, releasing, strict=True)
+                         for name in r["names"]} if relaxed else None)
+            if not d.step(stage["name"], k, n, d.loads(force, (1 - lam) * y_old + lam * y_new),
+                          released):
                 break
         base, pending = base + pending + support, zero
+        releasing = [dict(r, before=r["held"][0], held=r["held"][1:]) for r in releasing
+                     if len(r["held"]) > 1]
         d.water_y = y_new
         if stage_end is not None and d.status == Status.CONVERGED:
             stage_end(d, stage["name"])
     return d
+
+
+def _release_groups(excavations: dict, layout, N: int) -> list:
+    """The blocks a stage removes, grouped by how their load is released: a list of
+    (excavation names, (N,) bool mask, fractions held after each stage of the release)."""
+    groups: dict[tuple, tuple] = {}
+    for i, name in enumerate(layout.excavation[:layout.n_rock]):
+        if name is not None and name in excavations:
+            names, mask = groups.setdefault(excavations[name], ([], np.zeros(N, bool)))
+            mask[i] = True
+            if name not in names:
+                names.append(name)
+    return [(names, mask, held) for held, (names, mask) in groups.items()]
 
 
 def increment_count(scene, layout) -> int:
@@ -171,22 +207,25 @@ def increment_count(scene, layout) -> int:
 
 
 def stage_plan(scene) -> list[dict]:
-    """The stages after the initial state, in order, with what each one does."""
+    """The stages after the initial state, in order, with what each one does.
+
+    ``excavations``: {name: the fractions of its load held after each stage of its
+    release (:attr:`jaxdem.scene.Excavation.held`)} of those the stage removes."""
     excavations = scene.excavations
     stages = list(scene.stages)
     bolts_later = scene.bolts and scene.in_situ is not None
     if not stages and (excavations or scene.supports or bolts_later):
         return [dict(name="excavation", first=True, load_steps=None, water_table=None,
-                     excavations={e.name for e in excavations})]
+                     excavations={e.name: e.held for e in excavations})]
     if not stages and scene.in_situ is not None and scene.in_situ.mode == "uniform":
         # A uniform in-situ stress leaves self-weight to the first stage; with
         # no stage, it is applied over the load steps of a "loading" stage.
         return [dict(name="loading", first=True, load_steps=None, water_table=None,
-                     excavations=set())]
+                     excavations={})]
     first = stages[0].name if stages else None
     return [dict(name=st.name, first=st.name == first, load_steps=st.load_steps,
                  water_table=st.water_table,
-                 excavations={e.name for e in excavations
+                 excavations={e.name: e.held for e in excavations
                               if e.stage == st.name or (e.stage is None and st.name == first)})
             for st in stages]
 
@@ -315,7 +354,9 @@ class _Driver:
         dtype = loads.force.dtype
         return loads, dict(force=jnp.asarray(force[1:], dtype), water_y=jnp.asarray(wy[1:], dtype))
 
-    def step(self, stage, k, n, loads):
+    def step(self, stage, k, n, loads, released=None):
+        """One increment (load step k of n of ``stage``); ``released``: {excavation: fraction
+        of its load released so far}, recorded in scenes that release loads over stages."""
         loads, dloads = loads
         tangents = None if dloads is None else dict(model=self.data.dmodel, state=self.dstate,
                                                     loads=dloads)
@@ -340,6 +381,8 @@ class _Driver:
                    slip_blocks=[int(x) for x in np.asarray(jm["slip_blocks"])],
                    opening=float(jm["opening"]),
                    opening_blocks=[int(x) for x in np.asarray(jm["opening_blocks"])])
+        if released is not None:
+            rec["released"] = released
         self.records.append(rec)
         self.history.append(dict(stage=stage, step=k, load_factor=k / n,
                                  monitors=monitor_values(self.layout, self.state, self.ref)))

@@ -66,7 +66,10 @@ Documented extensions and choices:
   around the full circle (the roof arc takes ceil(n / 2)), h = ``domain.mesh_size`` if set,
   else half the smallest joint-set spacing, else r / 4. Excavations lie inside the domain
   (touching its outline is allowed) and do not overlap each other. ``stage`` names a
-  ``[[stages]]`` entry; left out: the first stage (or the only analysis).
+  ``[[stages]]`` entry; left out: the first stage (or the only analysis). ``release``
+  (extension, RS2's load split): the fractions of its load released in its stage and in
+  the stages after it, each in (0, 1], summing to 1 within 1e-9, one stage for each
+  (default ``[1.0]``).
 - ``[in_situ] mode`` defaults to ``"gravity"``; there ``surface_y`` defaults to the top of
   the rock (highest domain or block vertex) and is stored resolved. Fields of the other
   mode are refused rather than ignored.

@@ -52,7 +52,7 @@ from jaxdem.scene._schema import (
     Stage,
     Zone,
 )
-from jaxdem.scene._stages import stage_ref
+from jaxdem.scene._stages import read_release, stage_ref
 
 
 def _material_ref(t: dict, path: str, materials: dict[str, Material]) -> str:
@@ -257,6 +257,7 @@ def parse_excavations(
                 v = horseshoe_vertices(center, width, height, n)
         v.setflags(write=False)
         stage = stage_ref(t, p, stages)
+        release = read_release(t, p, stage, stages)
         area = geometry.signed_area(v)
         if domain is not None:
             inside = geometry.polygon_overlap_area(v, domain.outline)
@@ -287,6 +288,7 @@ def parse_excavations(
                 radius=radius,
                 width=width,
                 height=height,
+                release=release,
             )
         )
     if domain is not None and out:

@@ -149,7 +149,9 @@ class Excavation:
     ``shape`` is "circle" (``center``, ``radius``), "horseshoe" (``center`` = middle of the
     flat floor, ``width``, ``height``: vertical walls up to height - width/2, semicircular
     roof of radius width/2) or "polygon". ``stage``: the stage that excavates it (None: the
-    first).
+    first). ``release``: the fractions of its load released in its stage and in the stages
+    after it (RS2's load split; each in (0, 1], summing to 1; default (1.0,): all in its
+    stage).
     """
 
     name: str
@@ -160,6 +162,15 @@ class Excavation:
     radius: float | None = None
     width: float | None = None
     height: float | None = None
+    release: tuple[float, ...] = (1.0,)
+
+    @property
+    def held(self) -> tuple[float, ...]:
+        """The fraction of its load still held on the rock after each stage of its release:
+        1 - the fractions released so far, and exactly 0 after the last (release (0.4, 0.6)
+        -> held (0.6, 0.0))."""
+        done = [math.fsum(self.release[:k + 1]) for k in range(len(self.release) - 1)]
+        return tuple(1.0 - x for x in done) + (0.0,)
 
 
 @dataclass(frozen=True)
@@ -286,7 +297,8 @@ BOUNDARY_FIELDS = ("side", "from", "to", "condition", "traction", "stage")
 MONITOR_FIELDS = ("name", "point", "from", "to")
 DOMAIN_FIELDS = ("outline", "material", "mesh_size", "mesh_max_size")
 ZONE_FIELDS = ("name", "vertices", "material")
-EXCAVATION_FIELDS = ("name", "shape", "center", "radius", "width", "height", "vertices", "stage")
+EXCAVATION_FIELDS = ("name", "shape", "center", "radius", "width", "height", "vertices", "stage",
+                     "release")
 SHAPES = ("circle", "horseshoe", "polygon")
 SHAPE_FIELDS = {
     "circle": ("center", "radius"),

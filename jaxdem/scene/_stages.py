@@ -4,7 +4,8 @@ references to a stage by name or 1-based number (``stage = 2``), and water table
 
 Raw section dicts in, ``Stage`` and ``Water`` records out; the stage references are
 resolved here for excavations, bolts, supports and traction boundaries
-(:mod:`jaxdem.scene._rock`, :mod:`jaxdem.scene._loads`).
+(:mod:`jaxdem.scene._rock`, :mod:`jaxdem.scene._loads`), and so is an excavation's
+``release`` over its stage and the stages after it.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from jaxdem.scene._fields import (
     read_count,
     read_field,
     read_name,
+    read_number,
     read_table,
     read_vertices,
 )
@@ -69,6 +71,48 @@ def stage_ref(t: dict, path: str, stages: tuple[Stage, ...]) -> str | None:
         return names[int(raw) - 1]
     raise SceneError(sp, f"must be a stage name or its number from 1 (got {fmt(raw)}); "
                      f"stages are {listed}")
+
+
+RELEASE_SUM_TOLERANCE = 1e-9
+"""How far from 1 the fractions of an excavation's ``release`` may sum (rounding in a file)."""
+
+
+def read_release(t: dict, path: str, stage: str | None, stages: tuple[Stage, ...]
+                 ) -> tuple[float, ...]:
+    """``release``: the fractions of an excavation's load released in its stage and in each
+    stage after it (RS2's load split, the relaxation of the convergence-confinement method);
+    each in (0, 1], summing to 1 within RELEASE_SUM_TOLERANCE, with a stage for each.
+    Default (1.0,): all of it in its own stage. ``stage`` is the excavation's (resolved)."""
+    if "release" not in t:
+        return (1.0,)
+    raw, rp = t["release"], f"{path}.release"
+    if not isinstance(raw, (list, tuple)) or not raw:
+        raise SceneError(rp, "must be a list of the fractions of the excavation's load released "
+                         "in its stage and in each stage after it, summing to 1, e.g. "
+                         f"[0.4, 0.6] (got {fmt(raw)})")
+    fractions = tuple(read_number(x, f"{rp}.{k}") for k, x in enumerate(raw))
+    for k, x in enumerate(fractions):
+        if not 0.0 < x <= 1.0:
+            raise SceneError(f"{rp}.{k}", f"must be in (0, 1]: a fraction of the load, released "
+                             f"in a stage (got {fmt(raw[k])})")
+    total = math.fsum(fractions)
+    if abs(total - 1.0) > RELEASE_SUM_TOLERANCE:
+        raise SceneError(rp, f"the fractions must sum to 1, all of the load released in the end "
+                         f"(got {' + '.join(f'{x:g}' for x in fractions)} = {total:.12g})")
+    names, n = [s.name for s in stages], len(fractions)
+    if n == 1:
+        return fractions
+    if not names:
+        raise SceneError(rp, f"{n} fractions need {n} stages, but the scene has no [[stages]] "
+                         "(its excavations are released in one stage); define [[stages]]")
+    first = names.index(stage) if stage is not None else 0
+    left = len(names) - first
+    if n > left:
+        listed = ", ".join(f"{k + 1} {name!r}" for k, name in enumerate(names))
+        raise SceneError(rp, f"{n} fractions need {n} stages from its stage {first + 1} "
+                         f"{names[first]!r} on, but only {left} {'is' if left == 1 else 'are'} "
+                         f"left (stages are {listed})")
+    return fractions
 
 
 def _water_table(value: Any, path: str) -> np.ndarray:
