@@ -11,22 +11,24 @@ its blocks' part :func:`block_fields_of`), :func:`_newton` (the iteration on du)
 eps M only shapes the path: the converged answer solves R = 0 whatever eps
 is, and where K_t is singular (a free block, a sliding mechanism) it turns
 the step into a finite move along the mechanism, which the step length
-bounds. Where slots slip, the elastic (secant) matrix converges only
-linearly; once it has reduced R twice with the states held, or has stalled
-(three iterations without progress), the slip tangent is tried (on the
-direct paths the exact one, with the coupling of shear to normal force),
-and kept while it reduces R. When the secant iteration stalls and even the
-slip tangent makes no progress (R stays put: a block
-just past limit equilibrium, whose small residual would move it only by
-R / (eps k) an iteration), the step goes the whole step length along the
-mechanism, so that it is followed and reported, not left to creep into the
-iteration limit. A slot whose state flips four times in one sub-step is
-frozen in its last state for the rest of that sub-step, which ends
-open/close chatter. Frozen slots only shape the path: a sub-step converges
-only if every block also balances with the forces the contact law gives
-(a frozen slot at its limit: within the tolerance), and returns those. A
-frozen slot that breaks its law there (stuck beyond its strength, closed
-in tension) takes the law's state and the iteration goes on.
+bounds. Within a sub-step the residual is piecewise linear in du (the springs
+are linear, the law caps them), and on the direct paths every step solves
+with its consistent tangent, the slip law's coupling of shear to normal
+force included (a semismooth Newton), with a backtracking line search on the
+squared residuals. A tangent step that would leave the step length hands back
+to the elastic (secant) matrix for the rest of the sub-step. When the
+iteration stalls (R stays put with the states held: a block just past limit
+equilibrium, whose small residual would move it only by R / (eps k) an
+iteration), the slip tangent is used and the step goes the whole step length
+along the mechanism, so that it is followed and reported, not left to creep
+into the iteration limit. A slot whose state flips :data:`FREEZE_AFTER` times
+in one sub-step is frozen in its last state for the rest of that sub-step,
+which ends open/close chatter. Frozen slots only shape the path: a sub-step
+converges only if every block also balances with the forces the contact law
+gives (a frozen slot at its limit: within the tolerance), and returns those.
+A frozen slot that breaks its law there (stuck beyond its strength, closed in
+tension, held open with a block inside it) takes the law's state and the
+iteration goes on.
 
 Data flow: takes spring forces and stiffness (:mod:`jaxdem.core._springs`), the
 linear solves (:mod:`jaxdem.core._linsolve`), kinematics, contact detection and
@@ -109,7 +111,8 @@ class Iterate(NamedTuple):
     closing slot ended the sub-step before equilibrium) / ``finite``, ``rnorm`` the
     largest residual of a free block relative to its force scale, ``rprev`` the same
     relative to its tolerance at the previous iteration, ``stall`` how many iterations
-    in a row made no progress with the states held.
+    in a row made no progress with the states held, ``trusted`` that no step with the
+    consistent tangent has yet overshot the step length in this sub-step.
     """
 
     du: jax.Array
@@ -125,6 +128,7 @@ class Iterate(NamedTuple):
     rnorm: jax.Array
     rprev: jax.Array
     stall: jax.Array
+    trusted: jax.Array
 
 
 def _newton(model: Model, sub: Sub, st0):
@@ -137,9 +141,11 @@ def _newton(model: Model, sub: Sub, st0):
     merit sum((|R_b| / tol_b)^2) over the free blocks takes the first of
     1, 1/2, 1/4, ... that decreases it (Armijo); where none does within
     :data:`LINE_SEARCH_HALVINGS` the whole step is taken (the merit is not smooth
-    where states change, and a state change is what the step is for). On the cg
-    path the elastic (secant) matrix is used until the iteration stalls, then the
-    slip tangent's symmetric part, without line search.
+    where states change, and a state change is what the step is for). A tangent
+    step that would leave the step length is not taken, and the elastic matrix
+    is used for the rest of the sub-step. On the cg path the elastic (secant)
+    matrix is used until the iteration stalls, then the slip tangent's symmetric
+    part, without line search.
 
     Returns du, the final evaluation, and the :class:`Iterate` at the end.
     """
@@ -197,7 +203,7 @@ def _newton(model: Model, sub: Sub, st0):
         still = ~jnp.any(changed)
         progress = rnorm <= 0.98 * c.rprev
         stall = jnp.where(still & ~progress, c.stall + 1, 0)
-        tangent = jnp.array(True) if direct else stall >= 3
+        tangent = (c.trusted if direct else False) | (stall >= 3)
 
         def newton_step():
             terms = stiffness_terms(model, sub, ev, tangent)
@@ -255,6 +261,15 @@ def _newton(model: Model, sub: Sub, st0):
         s_gap = jnp.min(s_slots, initial=jnp.inf)
         scale = jnp.minimum(s_travel, s_gap)
         clipped = (s_travel <= s_gap) & ((s_travel < 1.0) | creeping)
+        # A consistent-tangent step that would leave the step length is not
+        # taken, and the elastic matrix is used for the rest of the sub-step
+        # (but for stalls): the slip tangent of a large trial step can show a
+        # slip mechanism that is not there (a toppling block's stuck pivot,
+        # slipping under the linearised rotation, would slide it down-slope).
+        overshoot = c.trusted & ~(stall >= 3) & clipped & ~creeping
+        trusted = c.trusted & ~overshoot
+        scale = jnp.where(overshoot, 0.0, scale)
+        clipped = clipped & ~overshoot
         if direct:
             scale = _line_search(lambda x: merit(evaluate(model, sub, x, frozen, frozen_state,
                                                           ev["state"], band), tol),
@@ -267,14 +282,14 @@ def _newton(model: Model, sub: Sub, st0):
         return Iterate(du=du, st=ev["state"], flips=flips, frozen=frozen,
                        frozen_state=frozen_state, it=it, done=done, converged=converged,
                        clipped=clipped & ~converged, finite=finite, rnorm=rnorm * model.tol,
-                       rprev=rnorm, stall=stall)
+                       rprev=rnorm, stall=stall, trusted=trusted)
 
     inf = jnp.array(jnp.inf, dtype)
     init = Iterate(du=jnp.zeros((N, model.ndof), dtype), st=st0, flips=zeros_s,
                    frozen=jnp.zeros(S, bool), frozen_state=zeros_s, it=jnp.array(0),
                    done=jnp.array(False), converged=jnp.array(False),
                    clipped=jnp.array(False), finite=jnp.array(True), rnorm=inf, rprev=inf,
-                   stall=jnp.array(0))
+                   stall=jnp.array(0), trusted=jnp.array(direct))
     c = jax.lax.while_loop(lambda c: ~c.done, body, init)
     # A converged sub-step returns (and commits) the law's own forces and
     # states, which balance the blocks; one cut short keeps the frozen ones.
