@@ -11,22 +11,24 @@ its blocks' part :func:`block_fields_of`), :func:`_newton` (the iteration on du)
 eps M only shapes the path: the converged answer solves R = 0 whatever eps
 is, and where K_t is singular (a free block, a sliding mechanism) it turns
 the step into a finite move along the mechanism, which the step length
-bounds. Where slots slip, the elastic (secant) matrix converges only
-linearly; once it has reduced R twice with the states held, or has stalled
-(three iterations without progress), the slip tangent is tried (on the
-direct paths the exact one, with the coupling of shear to normal force),
-and kept while it reduces R. When the secant iteration stalls and even the
-slip tangent makes no progress (R stays put: a block
-just past limit equilibrium, whose small residual would move it only by
-R / (eps k) an iteration), the step goes the whole step length along the
-mechanism, so that it is followed and reported, not left to creep into the
-iteration limit. A slot whose state flips four times in one sub-step is
-frozen in its last state for the rest of that sub-step, which ends
-open/close chatter. Frozen slots only shape the path: a sub-step converges
-only if every block also balances with the forces the contact law gives
-(a frozen slot at its limit: within the tolerance), and returns those. A
-frozen slot that breaks its law there (stuck beyond its strength, closed
-in tension) takes the law's state and the iteration goes on.
+bounds. Within a sub-step the residual is piecewise linear in du (the springs
+are linear, the law caps them), and on the direct paths every step solves
+with its consistent tangent, the slip law's coupling of shear to normal
+force included (a semismooth Newton), with a backtracking line search on the
+squared residuals. A tangent step that would leave the step length hands back
+to the elastic (secant) matrix for the rest of the sub-step. When the
+iteration stalls (R stays put with the states held: a block just past limit
+equilibrium, whose small residual would move it only by R / (eps k) an
+iteration), the slip tangent is used and the step goes the whole step length
+along the mechanism, so that it is followed and reported, not left to creep
+into the iteration limit. A slot whose state flips :data:`FREEZE_AFTER` times
+in one sub-step is frozen in its last state for the rest of that sub-step,
+which ends open/close chatter. Frozen slots only shape the path: a sub-step
+converges only if every block also balances with the forces the contact law
+gives (a frozen slot at its limit: within the tolerance), and returns those.
+A frozen slot that breaks its law there (stuck beyond its strength, closed in
+tension, held open with a block inside it) takes the law's state and the
+iteration goes on.
 
 Data flow: takes spring forces and stiffness (:mod:`jaxdem.core._springs`), the
 linear solves (:mod:`jaxdem.core._linsolve`), kinematics, contact detection and
@@ -37,6 +39,7 @@ loads from below; used by :mod:`jaxdem.core.increment` and
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -87,11 +90,64 @@ def force_scales(model: Model, sub: Sub):
     return s0, 0.1 * model.tol * jnp.where(jnp.isfinite(s_slot), s_slot, biggest)
 
 
+#: A slot whose state flips this many times in one sub-step is held in its last state
+#: for the rest of it (open/close and stick/slip chatter). With the consistent tangent
+#: and the line search a slot settles in a few flips where it can: 4 froze slots on
+#: their way to an answer (seed example 4's first increment took 513 iterations, 215
+#: with 12; 8 gave 385), BENCHMARKS.md "Issue 30, Newton".
+FREEZE_AFTER = 12
+#: Halvings of a Newton step that the line search tries before it takes the whole step.
+LINE_SEARCH_HALVINGS = 8
+#: Armijo's sufficient decrease of the merit, per unit of step.
+ARMIJO = 1e-4
+
+
+class Iterate(NamedTuple):
+    """The carry of the Newton loop of one sub-step, and its record when it ends.
+
+    Per slot (S,): ``st`` the states of the last evaluation, ``flips`` how often each
+    changed, ``frozen`` and ``frozen_state`` the slots held in a state. Scalars:
+    ``it`` the iterations, ``done`` / ``converged`` / ``clipped`` (the step length or a
+    closing slot ended the sub-step before equilibrium) / ``finite``, ``rnorm`` the
+    largest residual of a free block relative to its force scale, ``rprev`` the same
+    relative to its tolerance at the previous iteration, ``stall`` how many iterations
+    in a row made no progress with the states held, ``trusted`` that no step with the
+    consistent tangent has yet overshot the step length in this sub-step.
+    """
+
+    du: jax.Array
+    st: jax.Array
+    flips: jax.Array
+    frozen: jax.Array
+    frozen_state: jax.Array
+    it: jax.Array
+    done: jax.Array
+    converged: jax.Array
+    clipped: jax.Array
+    finite: jax.Array
+    rnorm: jax.Array
+    rprev: jax.Array
+    stall: jax.Array
+    trusted: jax.Array
+
+
 def _newton(model: Model, sub: Sub, st0):
     """Newton iteration on du at fixed geometry (one sub-step).
 
-    Returns du, the final evaluation, and the loop record (converged, clipped,
-    iteration count, relative residual).
+    On the direct paths every step solves with the consistent tangent of the
+    states of the last evaluation (the slip law's coupling of shear to normal
+    force included: :func:`jaxdem.core._springs.with_slip_coupling`), a semismooth
+    Newton on the piecewise linear residual, and a backtracking line search on the
+    merit sum((|R_b| / tol_b)^2) over the free blocks takes the first of
+    1, 1/2, 1/4, ... that decreases it (Armijo); where none does within
+    :data:`LINE_SEARCH_HALVINGS` the whole step is taken (the merit is not smooth
+    where states change, and a state change is what the step is for). A tangent
+    step that would leave the step length is not taken, and the elastic matrix
+    is used for the rest of the sub-step. On the cg path the elastic (secant)
+    matrix is used until the iteration stalls, then the slip tangent's symmetric
+    part, without line search.
+
+    Returns du, the final evaluation, and the :class:`Iterate` at the end.
     """
     S = st0.shape[0]
     N = model.n_blocks
@@ -100,13 +156,14 @@ def _newton(model: Model, sub: Sub, st0):
     zeros_s = jnp.zeros(S, jnp.int32)
     # A small block moves at most a quarter of its radius per sub-step.
     step = jnp.minimum(model.step_length, 0.25 * model.radius)
+    direct = model.linear_solver != "cg"
 
-    def cond(c):
-        return ~c["done"]
+    def merit(ev, tol):
+        return jnp.sum(jnp.where(sub.free, (block_residual(model, ev["R"]) / tol) ** 2, 0.0))
 
-    def body(c):
-        ev = evaluate(model, sub, c["du"], c["frozen"], c["frozen_state"], c["st"], band)
-        changed = (ev["state"] != c["st"]) & sub.geo["active"]
+    def body(c: Iterate) -> Iterate:
+        ev = evaluate(model, sub, c.du, c.frozen, c.frozen_state, c.st, band)
+        changed = (ev["state"] != c.st) & sub.geo["active"]
         scale_b = jnp.maximum(s0, block_scale(model, sub, ev))
         tol = model.tol * scale_b
         # Largest residual of a free block relative to its own tolerance.
@@ -122,48 +179,39 @@ def _newton(model: Model, sub: Sub, st0):
         off = sub.free & (block_residual(model, ev["R_law"]) > tol)
         converged = balanced & ~jnp.any(off)
         a, b = sub.geo["a"], sub.geo["b"]
-        reassign = balanced & c["frozen"] & (ev["misfit"] > 0) & (off[a] | off[b])
-        flips = c["flips"] + changed.astype(jnp.int32)
-        newly = (flips >= 4) & ~c["frozen"]
-        frozen = c["frozen"] | newly
+        reassign = balanced & c.frozen & (ev["misfit"] > 0) & (off[a] | off[b])
+        # How deep a slot may sink in one step: its spring's own compression
+        # under the larger force scale of its two blocks.
+        s_slot = jnp.where(sub.free, scale_b, 0.0)
+        s_slot = jnp.maximum(s_slot[a], s_slot[b])
+        sink = s_slot / jnp.maximum(sub.prop["kn"], jnp.finfo(dtype).tiny)
+        # A slot frozen open that a block has entered deeper than that is not
+        # open: held open, every step would stop at its face (the closing
+        # bound below) and the iteration would cycle there. It takes the law's
+        # state.
+        pierced = (c.frozen & (c.frozen_state == OPEN) & sub.geo["active"]
+                   & (ev["gap"] < -sink) & (ev["law_state"] != OPEN))
+        reassign = reassign | pierced
+        flips = c.flips + changed.astype(jnp.int32)
+        newly = (flips >= FREEZE_AFTER) & ~c.frozen
+        frozen = c.frozen | newly
         frozen_state = jnp.where(newly, ev["state"],
-                                 jnp.where(reassign, ev["law_state"], c["frozen_state"]))
-        # The secant matrix (slipping slots keep their shear spring) converges
-        # only linearly where slots slip, the slower the more the shear springs
-        # dominate (a rate of 0.96 an iteration is common). Once it has
-        # reduced the residual twice in a row with the states held and slots
-        # slipping, the slip tangent is tried, and kept while it reduces the
-        # residual and no state changes: on the direct paths with the slip
-        # coupling (the exact tangent of the held states), on the cg path its
-        # symmetric part. Near a mechanism it is nearly singular: a tried
-        # step that does not reduce the residual, or that would leave the step
-        # length (that step is not taken), hands back to the secant for the
-        # rest of the sub-step. Three secant iterations that barely reduce the
-        # residual (stall) mean a mechanism or slip that the secant cannot
-        # settle: the slip tangent (with the slip coupling on the direct paths,
-        # as when tried: without it, the stall steps of seed example 4 undid and
-        # redid the same progress for hundreds of iterations, 1,408 in all
-        # against 721 with it, BENCHMARKS.md "Issue 30"), and ``creeping`` below.
+                                 jnp.where(reassign, ev["law_state"], c.frozen_state))
+        # Three iterations without progress with the states held mean a
+        # mechanism, or slip the step cannot settle: on the cg path the slip
+        # tangent is then used, and ``creeping`` below follows the mechanism.
         still = ~jnp.any(changed)
-        progress = rnorm <= 0.98 * c["rprev"]
-        settled = jnp.where(still & progress, c["settled"] + 1, 0)
-        failed = c["trying"] & ~progress
-        stall = jnp.where(still & ~progress & ~failed, c["stall"] + 1, 0)
-        slipping = jnp.any(sub.geo["active"] & (ev["state"] == SLIP))
-        if model.n_bolts:
-            slipping |= jnp.any(sub.bolt["active"] & (ev["bolt_state"] != 0))
-        untried = c["untried"] & ~failed
-        trying = still & untried & slipping & (c["trying"] | (settled >= 2)
-                                               | (c["tangent"] & progress))
-        tangent = trying | (stall >= 3)
+        progress = rnorm <= 0.98 * c.rprev
+        stall = jnp.where(still & ~progress, c.stall + 1, 0)
+        tangent = (c.trusted if direct else False) | (stall >= 3)
 
         def newton_step():
             terms = stiffness_terms(model, sub, ev, tangent)
-            if model.linear_solver == "cg":
+            if not direct:
                 # Inexact Newton (Eisenstat-Walker, choice 2): solve as accurately
                 # as Newton's own progress warrants, and no more accurately than
                 # the tolerance needs (the residual test below still decides).
-                ratio = jnp.where(jnp.isfinite(c["rprev"]), rnorm / c["rprev"], jnp.inf)
+                ratio = jnp.where(jnp.isfinite(c.rprev), rnorm / c.rprev, jnp.inf)
                 tol_min = jnp.min(jnp.where(sub.free, tol, jnp.inf))
                 need = 0.1 * tol_min / jnp.maximum(jnp.linalg.norm(ev["R"]),
                                                    jnp.finfo(tol.dtype).tiny)
@@ -171,41 +219,40 @@ def _newton(model: Model, sub: Sub, st0):
                                CG_RTOL_MIN[tol.dtype == jnp.float64], CG_RTOL_MAX)
                 return linear_solve(model, sub, terms, ev["R"], rtol=eta)
             terms = with_slip_coupling(model, sub, ev, terms, tangent)
-            return linear_solve(model, sub, terms, ev["R"], active=~c["done"] & ~converged,
-                                symmetric=~tangent)
+            # Unsymmetric (KLU on the sparse path): the slip coupling, and even
+            # without a slipping slot the tangent need not be positive definite
+            # (seed example 2 stopped CHOLMOD at column 3,937).
+            return linear_solve(model, sub, terms, ev["R"], active=~c.done & ~converged,
+                                symmetric=False)
 
         # The iterate that converged takes no step: its matrix is not
         # assembled nor factorised (one factorisation a sub-step). Under vmap
         # a cond on a per-member flag would run both branches, so a batch
         # (model.lanes) skips only when none of its members needs a step; the
-        # sparse path also skips the host solve of each member that does not.
+        # sparse path also skips the solve of each member that does not.
         idle = converged
         if model.lanes is not None:
-            idle = jax.lax.psum(jnp.where(converged | c["done"], 0, 1), model.lanes) == 0
-        ddu = jax.lax.cond(idle, lambda: jnp.zeros_like(c["du"]), newton_step)
-        t_now = block_travel(model, c["du"])
+            idle = jax.lax.psum(jnp.where(converged | c.done, 0, 1), model.lanes) == 0
+        ddu = jax.lax.cond(idle, lambda: jnp.zeros_like(c.du), newton_step)
+        t_now = block_travel(model, c.du)
         t_step = block_travel(model, ddu)
         room = jnp.maximum(step - t_now, 0.0)
         fit = jnp.min(jnp.where(t_step > 0, room / jnp.where(t_step > 0, t_step, 1.0), jnp.inf))
-        # Still no progress with the slip tangent: a mechanism whose residual
-        # is small (a block just past limit equilibrium) would only creep, by
-        # R / (eps k) an iteration, and run out of iterations instead of
-        # showing that it moves. Along the mechanism R does not change, so go
-        # the whole step along it (the elastic part of ddu, eps times
-        # smaller, stays negligible) and let the next sub-step follow it.
-        creeping = c["stall"] >= 5
+        # Still no progress: a mechanism whose residual is small (a block just
+        # past limit equilibrium) would only creep, by R / (eps k) an
+        # iteration, and run out of iterations instead of showing that it
+        # moves. Along the mechanism R does not change, so go the whole step
+        # along it (the elastic part of ddu, eps times smaller, stays
+        # negligible) and let the next sub-step follow it.
+        creeping = c.stall >= 5
         s_travel = jnp.where(creeping & jnp.isfinite(fit), fit, jnp.minimum(fit, 1.0))
         # No step lands a block inside another. A slot may close during the step
         # but not sink deeper than its spring's own compression under the forces
-        # in play (the larger force scale of its two blocks over its normal
-        # stiffness): a falling block lands on its support, it does not plunge a
-        # step length into it. Newton's own step (scale <= 1) compresses a
-        # closed spring as its law says, so closed slots bound only a step
+        # in play (``sink``): a falling block lands on its support, it does not
+        # plunge a step length into it. Newton's own step (scale <= 1) compresses
+        # a closed spring as its law says, so closed slots bound only a step
         # scaled beyond it (``creeping``); every step actually taken is checked.
-        s_slot = jnp.where(sub.free, scale_b, 0.0)
-        s_slot = jnp.maximum(s_slot[sub.geo["a"]], s_slot[sub.geo["b"]])
-        sink = s_slot / jnp.maximum(sub.prop["kn"], jnp.finfo(dtype).tiny)
-        dn_step = jnp.sum(sub.Bn * gather_pairs(ddu, sub.geo["a"], sub.geo["b"]), axis=1)
+        dn_step = jnp.sum(sub.Bn * gather_pairs(ddu, a, b), axis=1)
         closing = sub.geo["active"] & (dn_step < 0)
         depth = jnp.maximum(ev["gap"], 0.0) + sink
         s_slots = jnp.where(closing, depth / jnp.where(closing, -dn_step, 1.0), jnp.inf)
@@ -214,32 +261,63 @@ def _newton(model: Model, sub: Sub, st0):
         s_gap = jnp.min(s_slots, initial=jnp.inf)
         scale = jnp.minimum(s_travel, s_gap)
         clipped = (s_travel <= s_gap) & ((s_travel < 1.0) | creeping)
-        overshoot = trying & clipped
-        untried = untried & ~overshoot
+        # A consistent-tangent step that would leave the step length is not
+        # taken, and the elastic matrix is used for the rest of the sub-step
+        # (but for stalls): the slip tangent of a large trial step can show a
+        # slip mechanism that is not there (a toppling block's stuck pivot,
+        # slipping under the linearised rotation, would slide it down-slope).
+        overshoot = c.trusted & ~(stall >= 3) & clipped & ~creeping
+        trusted = c.trusted & ~overshoot
         scale = jnp.where(overshoot, 0.0, scale)
         clipped = clipped & ~overshoot
-        du = jnp.where(converged, c["du"], c["du"] + scale * ddu)
+        if direct:
+            scale = _line_search(lambda x: merit(evaluate(model, sub, x, frozen, frozen_state,
+                                                          ev["state"], band), tol),
+                                 c.du, ddu, scale, merit(ev, tol),
+                                 ~converged & ~clipped & (scale <= 1.0))
+        du = jnp.where(converged, c.du, c.du + scale * ddu)
         finite = jnp.all(jnp.isfinite(du))
-        it = c["it"] + 1
+        it = c.it + 1
         done = converged | clipped | ~finite | (it >= model.max_iterations)
-        return dict(du=du, st=ev["state"], flips=flips, frozen=frozen, frozen_state=frozen_state,
-                    it=it, done=done, converged=converged, clipped=clipped & ~converged,
-                    finite=finite, rnorm=rnorm * model.tol, rprev=rnorm, stall=stall,
-                    settled=settled, trying=trying, untried=untried, tangent=tangent)
+        return Iterate(du=du, st=ev["state"], flips=flips, frozen=frozen,
+                       frozen_state=frozen_state, it=it, done=done, converged=converged,
+                       clipped=clipped & ~converged, finite=finite, rnorm=rnorm * model.tol,
+                       rprev=rnorm, stall=stall, trusted=trusted)
 
-    init = dict(du=jnp.zeros((N, model.ndof), sub.load.dtype), st=st0, flips=zeros_s,
-                frozen=jnp.zeros(S, bool), frozen_state=zeros_s, it=jnp.array(0),
-                done=jnp.array(False), converged=jnp.array(False), clipped=jnp.array(False),
-                finite=jnp.array(True), rnorm=jnp.array(jnp.inf, sub.load.dtype),
-                rprev=jnp.array(jnp.inf, sub.load.dtype), stall=jnp.array(0),
-                settled=jnp.array(0), trying=jnp.array(False), untried=jnp.array(True),
-                tangent=jnp.array(False))
-    c = jax.lax.while_loop(cond, body, init)
+    inf = jnp.array(jnp.inf, dtype)
+    init = Iterate(du=jnp.zeros((N, model.ndof), dtype), st=st0, flips=zeros_s,
+                   frozen=jnp.zeros(S, bool), frozen_state=zeros_s, it=jnp.array(0),
+                   done=jnp.array(False), converged=jnp.array(False),
+                   clipped=jnp.array(False), finite=jnp.array(True), rnorm=inf, rprev=inf,
+                   stall=jnp.array(0), trusted=jnp.array(direct))
+    c = jax.lax.while_loop(lambda c: ~c.done, body, init)
     # A converged sub-step returns (and commits) the law's own forces and
     # states, which balance the blocks; one cut short keeps the frozen ones.
-    ev = evaluate(model, sub, c["du"], c["frozen"] & ~c["converged"], c["frozen_state"], c["st"],
-                  band)
-    return c["du"], ev, c
+    ev = evaluate(model, sub, c.du, c.frozen & ~c.converged, c.frozen_state, c.st, band)
+    return c.du, ev, c
+
+
+def _line_search(merit_at, du, ddu, scale, m0, on):
+    """The step scale that the backtracking line search takes (see :func:`_newton`).
+
+    Tries ``scale``, scale / 2, ... (at most :data:`LINE_SEARCH_HALVINGS` halvings)
+    and returns the first whose merit meets Armijo's condition; ``scale`` itself
+    where none does or where ``on`` is false.
+    """
+    def sufficient(s, m):
+        return m <= (1.0 - ARMIJO * s / jnp.maximum(scale, jnp.finfo(m0.dtype).tiny)) * m0
+
+    def cond(q):
+        s, k, m = q
+        return on & ~sufficient(s, m) & (k < LINE_SEARCH_HALVINGS)
+
+    def body(q):
+        s = 0.5 * q[0]
+        return s, q[1] + 1, merit_at(du + s * ddu)
+
+    m1 = jax.lax.cond(on, lambda: merit_at(du + scale * ddu), lambda: m0)
+    s, _, m = jax.lax.while_loop(cond, body, (scale, jnp.array(0), m1))
+    return jnp.where(on & sufficient(s, m), s, scale)
 
 
 def _snap_gaps(geo: dict, carried) -> dict:

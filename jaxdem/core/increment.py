@@ -119,14 +119,14 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
         overflow = (need["pairs"] > state.capacity) | need["cell_full"]
         travel = c["travel"] + block_travel(model, du)
         small = jnp.max(block_travel(model, du)) <= model.touch_tol
-        stuck = jnp.where(newton["converged"] | newton["clipped"], 0, c["stuck"] + 1)
+        stuck = jnp.where(newton.converged | newton.clipped, 0, c["stuck"] + 1)
         substeps = c["substeps"] + 1
         # The first outcome that holds ends the increment; -1 goes on. An
         # equilibrium counts only if it is admissible (no overlap, no law broken,
         # the whole in balance): else the status says which check failed.
-        done = newton["converged"] & small & ~need["new_failures"]
+        done = newton.converged & small & ~need["new_failures"]
         status = jnp.select(
-            [overflow, ~newton["finite"], done & (balance["overlap_rel"] > OVERLAP_TOL),
+            [overflow, ~newton.finite, done & (balance["overlap_rel"] > OVERLAP_TOL),
              done & (balance["excess"] > STRENGTH_TOL),
              done & (global_imbalance_jax(balance) > IMBALANCE_FACTOR * model.tol), done,
              jnp.max(travel) > model.max_displacement,
@@ -135,14 +135,14 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
                               Status.LAW_VIOLATION, Status.IMBALANCE, Status.CONVERGED,
                               Status.MECHANISM, Status.ITERATION_LIMIT)],
             -1)
-        keep = overflow | ~newton["finite"]
+        keep = overflow | ~newton.finite
         hold = lambda old, new: jax.tree.map(lambda o, n: jnp.where(keep, o, n), old, new)  # noqa: E731
         out = dict(state=hold(c["state"], st_new), status=status, substeps=substeps, stuck=stuck,
-                   iterations=c["iterations"] + newton["it"], travel=travel,
-                   residual=newton["rnorm"], balance=balance, snapshot=snap,
+                   iterations=c["iterations"] + newton.it, travel=travel,
+                   residual=newton.rnorm, balance=balance, snapshot=snap,
                    pairs_needed=jnp.maximum(c["pairs_needed"], need["pairs"]),
                    cell_full=c["cell_full"] | need["cell_full"],
-                   approximate=c["approximate"] | ~newton["converged"])
+                   approximate=c["approximate"] | ~newton.converged)
         if tangents is not None:
             out.update(dstate=hold(c["dstate"], dstate), dsnapshot=dsnap)
         return out

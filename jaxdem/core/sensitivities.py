@@ -221,7 +221,7 @@ def substep_tangent(model: Model, state: State, loads: Loads, dmodel, dstate, dl
     # alone (:func:`_sub_tangents`).
     mdl, sub, st0, pairs, need = prepare_substep(model, state, loads)
     forward = newton_and_commit(mdl, state, sub, st0, pairs, need)
-    new_state, du, converged = forward[0], forward[1], forward[2]["converged"]
+    new_state, du, converged = forward[0], forward[1], forward[2].converged
     held = new_state.cstate.reshape(-1)
     all_held = jnp.ones(held.shape, bool)
     leaves, tree = jax.tree.flatten(sub)
