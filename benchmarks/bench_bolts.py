@@ -32,7 +32,7 @@ import numpy as np  # noqa: E402
 import test_bolts as tb  # noqa: E402
 
 import jaxdem  # noqa: E402
-from jaxdem.scene import parse_scene
+from jaxdem.scene import parse_scene  # noqa: E402
 
 
 def cases():

@@ -238,7 +238,7 @@ def incline_error(result: dict) -> float:
     base = [[-1.0, -ta - 2.0], [12.0, -ta - 2.0], [12.0, 12.0 * ta], [-1.0, -ta]]
     # Centroid of the base polygon (shoelace), its distance from the slope line.
     A = cx = cy = 0.0
-    for (x0, y0), (x1, y1) in zip(base, base[1:] + base[:1]):
+    for (x0, y0), (x1, y1) in zip(base, base[1:] + base[:1], strict=True):
         w = x0 * y1 - x1 * y0
         A += w
         cx += (x0 + x1) * w

@@ -62,7 +62,8 @@ def transform(d: dict, point, *, mirror: bool, dy: float = 0.0) -> dict:
         if mirror and bd.get("side") in ("left", "right"):
             bd["side"] = {"left": "right", "right": "left"}[bd["side"]]
         if "from" in bd:
-            bd["from"], bd["to"] = (point(np.asarray(bd[k], float)).tolist() for k in ("from", "to"))
+            bd["from"], bd["to"] = (point(np.asarray(bd[k], float)).tolist()
+                                    for k in ("from", "to"))
         if mirror and "traction" in bd:
             bd["traction"] = [-bd["traction"][0], bd["traction"][1]]
     ins = d.get("in_situ")
