@@ -202,12 +202,8 @@ def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True)
                               rows, cols, blocks, rhs, jnp.asarray(active),
                               jnp.asarray(symmetric), vmap_method="sequential")
         return x.reshape(R.shape)
-    D = model.ndof
-    shape = blocks.shape
-    Ai = jnp.broadcast_to(D * rows[:, None, None] + jnp.arange(D)[:, None], shape)
-    Aj = jnp.broadcast_to(D * cols[:, None, None] + jnp.arange(D)[None, :], shape)
-    Ai, Aj = Ai.reshape(-1).astype(jnp.int32), Aj.reshape(-1).astype(jnp.int32)
-    Ax, b64 = blocks.reshape(-1).astype(jnp.float64), rhs.astype(jnp.float64)
+    Ai, Aj, Ax = coo_of_blocks(model, rows, cols, blocks)
+    b64 = rhs.astype(jnp.float64)
 
     def lu():
         return sparsax.lu_solve(Ai, Aj, Ax, b64)
@@ -222,6 +218,29 @@ def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True)
     else:
         x = jax.lax.cond(jnp.asarray(symmetric), lambda: sparsax.solve(Ai, Aj, Ax, b64), lu)
     return x.astype(R.dtype).reshape(R.shape)
+
+
+def coo_of_blocks(model: Model, rows, cols, blocks):
+    """COO triplets (int32 rows, int32 columns, float64 values) of the (D, D) blocks of
+    :func:`stiffness_blocks`, as sparsax takes them (duplicates are summed there)."""
+    D = model.ndof
+    shape = blocks.shape
+    Ai = jnp.broadcast_to(D * rows[:, None, None] + jnp.arange(D)[:, None], shape)
+    Aj = jnp.broadcast_to(D * cols[:, None, None] + jnp.arange(D)[None, :], shape)
+    return (Ai.reshape(-1).astype(jnp.int32), Aj.reshape(-1).astype(jnp.int32),
+            blocks.reshape(-1).astype(jnp.float64))
+
+
+def sparse_lu(model: Model, rows, cols, blocks):
+    """x = A^-1 b for (n,) or (n, p) b, A the sparse matrix of the (D, D) blocks, by KLU
+    inside the program (sparsax); None where sparsax is not installed. The pattern's
+    analysis and the numeric factor are cached by sparsax, so solves with the same
+    values factorise once."""
+    sparsax = _sparsax()
+    if sparsax is None:
+        return None
+    Ai, Aj, Ax = coo_of_blocks(model, rows, cols, blocks)
+    return lambda b: sparsax.lu_solve(Ai, Aj, Ax, b.astype(jnp.float64)).astype(b.dtype)
 
 
 # Stopping rule of the iterative solve: the Newton loop's forcing term lies in

@@ -219,11 +219,12 @@ def _newton(model: Model, sub: Sub, st0):
                                CG_RTOL_MIN[tol.dtype == jnp.float64], CG_RTOL_MAX)
                 return linear_solve(model, sub, terms, ev["R"], rtol=eta)
             terms = with_slip_coupling(model, sub, ev, terms, tangent)
-            # Unsymmetric (KLU on the sparse path): the slip coupling, and even
-            # without a slipping slot the tangent need not be positive definite
-            # (seed example 2 stopped CHOLMOD at column 3,937).
+            # The tangent is unsymmetric (KLU on the sparse path): the slip coupling,
+            # and even without a slipping slot it need not be positive definite
+            # (seed example 2 stopped CHOLMOD at column 3,937); the elastic matrix
+            # is symmetric positive definite (CHOLMOD).
             return linear_solve(model, sub, terms, ev["R"], active=~c.done & ~converged,
-                                symmetric=False)
+                                symmetric=~tangent)
 
         # The iterate that converged takes no step: its matrix is not
         # assembled nor factorised (one factorisation a sub-step). Under vmap

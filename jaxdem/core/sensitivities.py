@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdem.core._contact import remap_history, slot_geometry
-from jaxdem.core._linsolve import assemble_dense, host_matrix, stiffness_blocks
+from jaxdem.core._linsolve import assemble_dense, host_matrix, sparse_lu, stiffness_blocks
 from jaxdem.core._springs import Sub, evaluate, stiffness_terms, with_slip_coupling
 from jaxdem.core._substep import (
     block_fields_of,
@@ -100,6 +100,8 @@ def _tangent_solve(model: Model, sub: Sub, terms, rhs):
     excites, the derivative stays zero (the minimum-norm answer). Where the
     rhs does push along a neutral direction the derivative there is bounded by
     (1 + refinements) rhs / eps, as the forward solve's own step is.
+    The dense path factorises with LU in the program, the others with KLU in the
+    program (sparsax; SciPy's SuperLU on the host where sparsax is not installed).
     A factorisation that is still singular, or any non-finite entry, gives NaN
     everywhere: "no derivative at this point", which the back-analysis reads
     as a step to take back.
@@ -120,8 +122,21 @@ def _tangent_solve(model: Model, sub: Sub, terms, rhs):
         x = jnp.where(jnp.all(jnp.isfinite(x)), x, jnp.nan)
     else:
         rows, cols, blocks = stiffness_blocks(model, sub, a, b, L, Rt, k, diag)
-        x = jax.pure_callback(_host_tangent_solve, jax.ShapeDtypeStruct(B.shape, B.dtype),
-                              rows, cols, blocks, pm, B, vmap_method="sequential")
+        solve = sparse_lu(model, *stiffness_blocks(model, sub, a, b, L, Rt, k,
+                                                   jnp.where(free, pm, 1.0)))
+        if solve is None:  # without sparsax: SciPy's SuperLU on the host
+            x = jax.pure_callback(_host_tangent_solve, jax.ShapeDtypeStruct(B.shape, B.dtype),
+                                  rows, cols, blocks, pm, B, vmap_method="sequential")
+        else:
+            def K_times(x):
+                xb = x.reshape(N, D, p)[cols]
+                return jax.ops.segment_sum(jnp.einsum("kij,kjp->kip", blocks, xb), rows,
+                                           N).reshape(N * D, p)
+
+            x = solve(B)
+            for _ in range(TANGENT_REFINEMENTS):
+                x = x + solve(B - K_times(x))
+            x = jnp.where(jnp.all(jnp.isfinite(x)), x, jnp.nan)
     return x.T.reshape(rhs.shape)
 
 
