@@ -210,6 +210,12 @@ def _chunk_size(model, state, S: int, devices) -> int:
     19 ms a sample in chunks of 4, 21 in 8, 39 in 16, 42 in 64; with the
     52-block benchmark tunnel at pair capacity 256 (0.4 MB a sample): 11.4 ms
     in chunks of 10, 10.1 in 16, 32 and 64 (BENCHMARKS.md, "Throughput").
+    On a CPU with the sparse path, one: its factorisations run one member after
+    another inside the native call anyway, and members in a chunk go in lockstep, so
+    every one pays the Newton iterations and sub-steps of the slowest (the levels of
+    a ground reaction curve near a mechanism take hundreds, the others tens). The
+    demo tunnel's 16-level curve took 40.5 s in chunks of 1, 62 s in 5, 86 s in 2
+    and 243 s in 8 (BENCHMARKS.md, "Ground reaction curve").
     On a GPU, many: as many as fit in a quarter
     of its free memory (the state and its copies inside an increment, and the
     dense matrix and its factor), at most 1,024.
@@ -221,6 +227,8 @@ def _chunk_size(model, state, S: int, devices) -> int:
     state_bytes = sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(state))
     matrix_bytes = n * n * itemsize if model.linear_solver == "dense" else 0
     if devices[0].platform == "cpu":
+        if model.linear_solver == "sparse":
+            return 1
         return int(max(1, min(16, S, 8e6 // (state_bytes + matrix_bytes))))
     per = 16 * state_bytes + 4 * matrix_bytes
     return int(max(1, min(1024, S, 0.25 * _free_memory(devices[0]) // per)))
