@@ -219,12 +219,12 @@ def stiffness_terms(model: Model, sub: Sub, ev, consistent):
     (secant) stiffness, which keeps every step of the order of the elastic
     compliance. With ``consistent``, slipping slots lose their shear spring
     (and yielded bolts theirs): the tangent of the slip law (its symmetric
-    part; the direct solvers add the coupling d fs / d fn = tan(phi),
-    :func:`with_slip_coupling`; the cg path does without). The Newton
-    iteration (:func:`jaxdem.core._substep._newton`) uses it from the first
-    iteration on the direct paths, and on every path once the elastic
-    iteration stalls, so that a sliding mechanism makes a finite move (bounded
-    by the step length) instead of creeping at elastic speed.
+    part; the direct solvers add the coupling d fs / d fn = tan(phi) while
+    it is tried, :func:`with_slip_coupling`; the cg path does without),
+    tried once the states hold so that slip settles in a few iterations, and
+    used once the elastic iteration stalls so that a sliding mechanism makes
+    a finite move (bounded by the step length) instead of creeping at
+    elastic speed.
     """
     st = ev["state"]
     closed = sub.geo["active"] & (st != OPEN)

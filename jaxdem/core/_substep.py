@@ -11,24 +11,24 @@ its blocks' part :func:`block_fields_of`), :func:`_newton` (the iteration on du)
 eps M only shapes the path: the converged answer solves R = 0 whatever eps
 is, and where K_t is singular (a free block, a sliding mechanism) it turns
 the step into a finite move along the mechanism, which the step length
-bounds. Within a sub-step the residual is piecewise linear in du (the springs
-are linear, the law caps them), and on the direct paths every step solves
-with its consistent tangent, the slip law's coupling of shear to normal
-force included (a semismooth Newton), with a backtracking line search on the
-squared residuals. A tangent step that would leave the step length hands back
-to the elastic (secant) matrix for the rest of the sub-step. When the
-iteration stalls (R stays put with the states held: a block just past limit
-equilibrium, whose small residual would move it only by R / (eps k) an
-iteration), the slip tangent is used and the step goes the whole step length
-along the mechanism, so that it is followed and reported, not left to creep
-into the iteration limit. A slot whose state flips :data:`FREEZE_AFTER` times
-in one sub-step is frozen in its last state for the rest of that sub-step,
-which ends open/close chatter. Frozen slots only shape the path: a sub-step
-converges only if every block also balances with the forces the contact law
-gives (a frozen slot at its limit: within the tolerance), and returns those.
-A frozen slot that breaks its law there (stuck beyond its strength, closed in
-tension, held open with a block inside it) takes the law's state and the
-iteration goes on.
+bounds. Where slots slip, the elastic (secant) matrix converges only
+linearly; once it has reduced R twice with the states held, the slip tangent
+is tried (on the direct paths the exact one, with the coupling of shear to
+normal force), its steps shortened by a backtracking line search on the
+squared residuals, and kept while it reduces R. A tried step that would
+leave the step length is not taken, and the secant takes over for the rest of
+the sub-step. When the secant iteration stalls (R stays put: a block just
+past limit equilibrium, whose small residual would move it only by
+R / (eps k) an iteration), the slip tangent is used and the step goes the
+whole step length along the mechanism, so that it is followed and reported,
+not left to creep into the iteration limit. A slot whose state flips
+:data:`FREEZE_AFTER` times in one sub-step is frozen in its last state for
+the rest of that sub-step, which ends open/close chatter. Frozen slots only
+shape the path: a sub-step converges only if every block also balances with
+the forces the contact law gives (a frozen slot at its limit: within the
+tolerance), and returns those. A frozen slot that breaks its law there (stuck
+beyond its strength, closed in tension, held open with a block inside it)
+takes the law's state and the iteration goes on.
 
 Data flow: takes spring forces and stiffness (:mod:`jaxdem.core._springs`), the
 linear solves (:mod:`jaxdem.core._linsolve`), kinematics, contact detection and
@@ -91,10 +91,10 @@ def force_scales(model: Model, sub: Sub):
 
 
 #: A slot whose state flips this many times in one sub-step is held in its last state
-#: for the rest of it (open/close and stick/slip chatter). With the consistent tangent
-#: and the line search a slot settles in a few flips where it can: 4 froze slots on
-#: their way to an answer (seed example 4's first increment took 513 iterations, 215
-#: with 12; 8 gave 385), BENCHMARKS.md "Issue 30, Newton".
+#: for the rest of it (open/close and stick/slip chatter). 4 froze slots on their way
+#: to an answer: with 12, seed example 4 (wet) takes 685 iterations instead of 721 with
+#: the line search and the pierced slots below (816 with 4), BENCHMARKS.md "Issue 30,
+#: Newton".
 FREEZE_AFTER = 12
 #: Halvings of a Newton step that the line search tries before it takes the whole step.
 LINE_SEARCH_HALVINGS = 8
@@ -111,8 +111,10 @@ class Iterate(NamedTuple):
     closing slot ended the sub-step before equilibrium) / ``finite``, ``rnorm`` the
     largest residual of a free block relative to its force scale, ``rprev`` the same
     relative to its tolerance at the previous iteration, ``stall`` how many iterations
-    in a row made no progress with the states held, ``trusted`` that no step with the
-    consistent tangent has yet overshot the step length in this sub-step.
+    in a row made no progress with the states held, ``settled`` how many reduced the
+    residual with the states held, ``trying`` the slip tangent is being tried,
+    ``tangent`` the last step used it, ``untried`` a tried step has not failed or
+    overshot in this sub-step.
     """
 
     du: jax.Array
@@ -128,24 +130,24 @@ class Iterate(NamedTuple):
     rnorm: jax.Array
     rprev: jax.Array
     stall: jax.Array
-    trusted: jax.Array
+    settled: jax.Array
+    trying: jax.Array
+    tangent: jax.Array
+    untried: jax.Array
 
 
 def _newton(model: Model, sub: Sub, st0):
     """Newton iteration on du at fixed geometry (one sub-step).
 
-    On the direct paths every step solves with the consistent tangent of the
-    states of the last evaluation (the slip law's coupling of shear to normal
-    force included: :func:`jaxdem.core._springs.with_slip_coupling`), a semismooth
-    Newton on the piecewise linear residual, and a backtracking line search on the
-    merit sum((|R_b| / tol_b)^2) over the free blocks takes the first of
-    1, 1/2, 1/4, ... that decreases it (Armijo); where none does within
-    :data:`LINE_SEARCH_HALVINGS` the whole step is taken (the merit is not smooth
-    where states change, and a state change is what the step is for). A tangent
-    step that would leave the step length is not taken, and the elastic matrix
-    is used for the rest of the sub-step. On the cg path the elastic (secant)
-    matrix is used until the iteration stalls, then the slip tangent's symmetric
-    part, without line search.
+    The elastic (secant) matrix first; the slip tangent (with the slip coupling on
+    the direct paths: :func:`jaxdem.core._springs.with_slip_coupling`) once the
+    secant has reduced the residual twice with the states held and slots slip,
+    kept while it reduces the residual; on the direct paths a backtracking line
+    search on the merit sum((|R_b| / tol_b)^2) over the free blocks takes the first
+    of 1, 1/2, 1/4, ... that meets Armijo's condition (the whole step where none
+    does within :data:`LINE_SEARCH_HALVINGS`: the merit is not smooth where states
+    change). A tried step that would leave the step length is not taken. The slip
+    tangent, without line search, once the iteration stalls (a mechanism).
 
     Returns du, the final evaluation, and the :class:`Iterate` at the end.
     """
@@ -197,13 +199,29 @@ def _newton(model: Model, sub: Sub, st0):
         frozen = c.frozen | newly
         frozen_state = jnp.where(newly, ev["state"],
                                  jnp.where(reassign, ev["law_state"], c.frozen_state))
-        # Three iterations without progress with the states held mean a
-        # mechanism, or slip the step cannot settle: on the cg path the slip
-        # tangent is then used, and ``creeping`` below follows the mechanism.
+        # The secant matrix (slipping slots keep their shear spring) converges
+        # only linearly where slots slip (a rate of 0.96 an iteration is common).
+        # Once it has reduced the residual twice in a row with the states held and
+        # slots slipping, the slip tangent is tried, and kept while it reduces the
+        # residual and no state changes: on the direct paths with the slip
+        # coupling (the exact tangent of the held states), on the cg path its
+        # symmetric part. A tried step that does not reduce the residual, or that
+        # would leave the step length (not taken), hands back to the secant for
+        # the rest of the sub-step. Three iterations without progress with the
+        # states held (stall) mean a mechanism or slip the secant cannot settle:
+        # the slip tangent, and ``creeping`` below follows the mechanism.
         still = ~jnp.any(changed)
         progress = rnorm <= 0.98 * c.rprev
-        stall = jnp.where(still & ~progress, c.stall + 1, 0)
-        tangent = (c.trusted if direct else False) | (stall >= 3)
+        settled = jnp.where(still & progress, c.settled + 1, 0)
+        failed = c.trying & ~progress
+        stall = jnp.where(still & ~progress & ~failed, c.stall + 1, 0)
+        slipping = jnp.any(sub.geo["active"] & (ev["state"] == SLIP))
+        if model.n_bolts:
+            slipping |= jnp.any(sub.bolt["active"] & (ev["bolt_state"] != 0))
+        untried = c.untried & ~failed
+        trying = still & untried & slipping & (c.trying | (settled >= 2)
+                                               | (c.tangent & progress))
+        tangent = trying | (stall >= 3)
 
         def newton_step():
             terms = stiffness_terms(model, sub, ev, tangent)
@@ -219,10 +237,8 @@ def _newton(model: Model, sub: Sub, st0):
                                CG_RTOL_MIN[tol.dtype == jnp.float64], CG_RTOL_MAX)
                 return linear_solve(model, sub, terms, ev["R"], rtol=eta)
             terms = with_slip_coupling(model, sub, ev, terms, tangent)
-            # The tangent is unsymmetric (KLU on the sparse path): the slip coupling,
-            # and even without a slipping slot it need not be positive definite
-            # (seed example 2 stopped CHOLMOD at column 3,937); the elastic matrix
-            # is symmetric positive definite (CHOLMOD).
+            # The secant matrix is symmetric positive definite (CHOLMOD on the
+            # sparse path), the slip tangent with its coupling is not (KLU).
             return linear_solve(model, sub, terms, ev["R"], active=~c.done & ~converged,
                                 symmetric=~tangent)
 
@@ -262,20 +278,19 @@ def _newton(model: Model, sub: Sub, st0):
         s_gap = jnp.min(s_slots, initial=jnp.inf)
         scale = jnp.minimum(s_travel, s_gap)
         clipped = (s_travel <= s_gap) & ((s_travel < 1.0) | creeping)
-        # A consistent-tangent step that would leave the step length is not
-        # taken, and the elastic matrix is used for the rest of the sub-step
-        # (but for stalls): the slip tangent of a large trial step can show a
-        # slip mechanism that is not there (a toppling block's stuck pivot,
-        # slipping under the linearised rotation, would slide it down-slope).
-        overshoot = c.trusted & ~(stall >= 3) & clipped & ~creeping
-        trusted = c.trusted & ~overshoot
+        # A tried tangent step that would leave the step length is not taken: near
+        # a mechanism the slip tangent is nearly singular, and its slip of a large
+        # trial step can show a mechanism that is not there (a toppling block's
+        # stuck pivot, slipping under the linearised rotation).
+        overshoot = trying & clipped
+        untried = untried & ~overshoot
         scale = jnp.where(overshoot, 0.0, scale)
         clipped = clipped & ~overshoot
         if direct:
             scale = _line_search(lambda x: merit(evaluate(model, sub, x, frozen, frozen_state,
                                                           ev["state"], band), tol),
                                  c.du, ddu, scale, merit(ev, tol),
-                                 ~converged & ~clipped & (scale <= 1.0))
+                                 trying & ~converged & ~clipped & (scale <= 1.0))
         du = jnp.where(converged, c.du, c.du + scale * ddu)
         finite = jnp.all(jnp.isfinite(du))
         it = c.it + 1
@@ -283,14 +298,16 @@ def _newton(model: Model, sub: Sub, st0):
         return Iterate(du=du, st=ev["state"], flips=flips, frozen=frozen,
                        frozen_state=frozen_state, it=it, done=done, converged=converged,
                        clipped=clipped & ~converged, finite=finite, rnorm=rnorm * model.tol,
-                       rprev=rnorm, stall=stall, trusted=trusted)
+                       rprev=rnorm, stall=stall, settled=settled, trying=trying,
+                       tangent=tangent, untried=untried)
 
     inf = jnp.array(jnp.inf, dtype)
     init = Iterate(du=jnp.zeros((N, model.ndof), dtype), st=st0, flips=zeros_s,
                    frozen=jnp.zeros(S, bool), frozen_state=zeros_s, it=jnp.array(0),
                    done=jnp.array(False), converged=jnp.array(False),
                    clipped=jnp.array(False), finite=jnp.array(True), rnorm=inf, rprev=inf,
-                   stall=jnp.array(0), trusted=jnp.array(direct))
+                   stall=jnp.array(0), settled=jnp.array(0), trying=jnp.array(False),
+                   tangent=jnp.array(False), untried=jnp.array(True))
     c = jax.lax.while_loop(lambda c: ~c.done, body, init)
     # A converged sub-step returns (and commits) the law's own forces and
     # states, which balance the blocks; one cut short keeps the frozen ones.

@@ -32,6 +32,8 @@ derivatives from :mod:`jaxdem.core.sensitivities`) and the tolerances of
 
 from __future__ import annotations
 
+from typing import Any, NamedTuple
+
 import jax
 import jax.numpy as jnp
 
@@ -94,6 +96,35 @@ _substep_once = jax.jit(substep)
 loop's shapes and its body share that trace; XLA inlines the call)."""
 
 
+class Progress(NamedTuple):
+    """The carry of an increment's loop of sub-steps (:func:`substeps_to_equilibrium`).
+
+    ``state`` the blocks and springs now; ``status`` the outcome's code (-1 while it goes
+    on: :class:`jaxdem.core.status.Status`); ``substeps``, ``iterations`` (Newton's, summed)
+    and ``stuck`` (sub-steps in a row that neither converged nor moved a step length);
+    ``travel`` (N,) each block's travel so far; ``residual`` the last sub-step's relative
+    residual; ``balance`` and ``snapshot`` those of the last sub-step
+    (:func:`jaxdem.core._substep.commit_substep`); ``pairs_needed`` and ``cell_full``
+    what the contact list needed; ``approximate`` a sub-step ended without equilibrium.
+    With sensitivities, ``dstate`` and ``dsnapshot`` their derivatives (else None).
+    """
+
+    state: State
+    status: jax.Array
+    substeps: jax.Array
+    stuck: jax.Array
+    iterations: jax.Array
+    travel: jax.Array
+    residual: jax.Array
+    balance: dict
+    snapshot: dict
+    pairs_needed: jax.Array
+    cell_full: jax.Array
+    approximate: jax.Array
+    dstate: Any = None
+    dsnapshot: Any = None
+
+
 def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=None, skip=None):
     """Geometry sub-steps until equilibrium; with ``tangents``, their sensitivities too.
 
@@ -107,20 +138,18 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
     _, _, _, _, balance0, snap0 = jax.eval_shape(_substep_once, model, state, loads)
     zeros_like = lambda t: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), t)  # noqa: E731
 
-    def cond(c):
-        return c["status"] < 0
-
-    def body(c):
+    def body(c: Progress) -> Progress:
         if tangents is None:
-            st_new, du, newton, need, balance, snap = _substep_once(model, c["state"], loads)
+            st_new, du, newton, need, balance, snap = _substep_once(model, c.state, loads)
+            dstate = dsnap = None
         else:
             (st_new, du, newton, need, balance, snap), (dstate, dsnap) = substep_tangent(
-                model, c["state"], loads, tangents["model"], c["dstate"], tangents["loads"])
+                model, c.state, loads, tangents["model"], c.dstate, tangents["loads"])
         overflow = (need["pairs"] > state.capacity) | need["cell_full"]
-        travel = c["travel"] + block_travel(model, du)
+        travel = c.travel + block_travel(model, du)
         small = jnp.max(block_travel(model, du)) <= model.touch_tol
-        stuck = jnp.where(newton.converged | newton.clipped, 0, c["stuck"] + 1)
-        substeps = c["substeps"] + 1
+        stuck = jnp.where(newton.converged | newton.clipped, 0, c.stuck + 1)
+        substeps = c.substeps + 1
         # The first outcome that holds ends the increment; -1 goes on. An
         # equilibrium counts only if it is admissible (no overlap, no law broken,
         # the whole in balance): else the status says which check failed.
@@ -137,33 +166,35 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
             -1)
         keep = overflow | ~newton.finite
         hold = lambda old, new: jax.tree.map(lambda o, n: jnp.where(keep, o, n), old, new)  # noqa: E731
-        out = dict(state=hold(c["state"], st_new), status=status, substeps=substeps, stuck=stuck,
-                   iterations=c["iterations"] + newton.it, travel=travel,
-                   residual=newton.rnorm, balance=balance, snapshot=snap,
-                   pairs_needed=jnp.maximum(c["pairs_needed"], need["pairs"]),
-                   cell_full=c["cell_full"] | need["cell_full"],
-                   approximate=c["approximate"] | ~newton.converged)
-        if tangents is not None:
-            out.update(dstate=hold(c["dstate"], dstate), dsnapshot=dsnap)
-        return out
+        return Progress(state=hold(c.state, st_new), status=status, substeps=substeps,
+                        stuck=stuck, iterations=c.iterations + newton.it, travel=travel,
+                        residual=newton.rnorm, balance=balance, snapshot=snap,
+                        pairs_needed=jnp.maximum(c.pairs_needed, need["pairs"]),
+                        cell_full=c.cell_full | need["cell_full"],
+                        approximate=c.approximate | ~newton.converged,
+                        dstate=None if tangents is None else hold(c.dstate, dstate),
+                        dsnapshot=dsnap)
 
     status0 = jnp.array(-1) if skip is None else jnp.where(skip, Status.CONVERGED.code, -1)
-    init = dict(state=state, status=status0, substeps=jnp.array(0), stuck=jnp.array(0),
-                iterations=jnp.array(0), travel=jnp.zeros(N, dtype),
-                residual=jnp.array(jnp.inf, dtype), balance=zeros_like(balance0),
-                snapshot=zeros_like(snap0), pairs_needed=jnp.array(0), cell_full=jnp.array(False),
-                approximate=jnp.array(False))
+    dstate0 = dsnap0 = None
     if tangents is not None:
-        init["dstate"] = tangents["state"]
+        dstate0 = tangents["state"]
         p = jax.tree.leaves(tangents["state"])[0].shape[0]
-        init["dsnapshot"] = {k: jnp.zeros((p,) + snap0[k].shape, dtype) for k in SNAPSHOT_FLOATS}
-    c = jax.lax.while_loop(cond, body, init)
-    info = {k: c[k] for k in ("status", "substeps", "iterations", "travel", "residual",
-                              "balance", "snapshot", "pairs_needed", "cell_full", "approximate")}
-    info["joints"] = _joint_motion(model, state, c["state"], c["snapshot"])
+        dsnap0 = {k: jnp.zeros((p,) + snap0[k].shape, dtype) for k in SNAPSHOT_FLOATS}
+    init = Progress(state=state, status=status0, substeps=jnp.array(0), stuck=jnp.array(0),
+                    iterations=jnp.array(0), travel=jnp.zeros(N, dtype),
+                    residual=jnp.array(jnp.inf, dtype), balance=zeros_like(balance0),
+                    snapshot=zeros_like(snap0), pairs_needed=jnp.array(0),
+                    cell_full=jnp.array(False), approximate=jnp.array(False),
+                    dstate=dstate0, dsnapshot=dsnap0)
+    c = jax.lax.while_loop(lambda c: c.status < 0, body, init)
+    info = {k: getattr(c, k) for k in ("status", "substeps", "iterations", "travel", "residual",
+                                       "balance", "snapshot", "pairs_needed", "cell_full",
+                                       "approximate")}
+    info["joints"] = _joint_motion(model, state, c.state, c.snapshot)
     if tangents is not None:
-        info.update(dstate=c["dstate"], dsnapshot=c["dsnapshot"])
-    return c["state"], info
+        info.update(dstate=c.dstate, dsnapshot=c.dsnapshot)
+    return c.state, info
 
 
 def _joint_motion(model: Model, start: State, end: State, snap) -> dict:
