@@ -70,7 +70,7 @@ from typing import Any
 import numpy as np
 
 from jaxdem.config import float64
-from jaxdem.geometry import centroid
+from jaxdem.geometry import centroid, point_in_polygon
 from jaxdem.results import jsonable, write_json
 from jaxdem.scene import SceneError, parse_scene
 
@@ -112,7 +112,11 @@ class SupportLine:
                 raise SceneError(f"support.{sorted(missing)[0]}", "required")
             line = cls(**value)
         else:
-            line = cls(*value)
+            try:
+                line = cls(*value)
+            except TypeError:
+                raise SceneError("support", "expected (stiffness, capacity[, installed_at]) "
+                                 f"(got {value!r})") from None
         for name, lo, closed in (("stiffness", 0.0, False), ("capacity", 0.0, False),
                                  ("installed_at", 0.0, True)):
             x = getattr(line, name)
@@ -239,7 +243,7 @@ def ground_reaction(scene, excavation: str, levels: int = 16, *, p0: float | Non
     c = check_inputs(scene, excavation, levels, p0=p0, start=start, support=support,
                      monitor=monitor)
     exc, levels, name, line = c["excavation"], c["levels"], c["monitor"], c["support"]
-    p0, p0_from, start = c["p0"], c["p0_from"], c["start"]
+    p0, p0_from, start, towards = c["p0"], c["p0_from"], c["start"], c["inward"]
     solved, index, note, dropped = grc_scene(scene, excavation)
     path = f"supports.{index}.pressure"
     pressure = np.linspace(start, 0.0, levels)
@@ -249,7 +253,7 @@ def ground_reaction(scene, excavation: str, levels: int = 16, *, p0: float | Non
     for m, v in batch.monitors.items():
         if v.ndim == 2:
             displacements[m] = v
-            monitors[m] = v @ inward(scene, exc, m)
+            monitors[m] = v @ towards[m]
         else:
             monitors[m] = v
     status = list(batch.status)
@@ -277,8 +281,8 @@ def check_inputs(scene, excavation: str, levels: int, *, p0=None, start=None, su
 
     Returns:
       ``excavation`` (the Excavation), ``levels``, ``monitor`` (its name), ``support``
-      (a SupportLine or None), ``p0`` (kPa), ``p0_from`` ("in_situ" or "given") and
-      ``start`` (kPa).
+      (a SupportLine or None), ``p0`` (kPa), ``p0_from`` ("in_situ" or "given"),
+      ``start`` (kPa) and ``inward`` (point monitor name -> :func:`inward`).
     Raises:
       SceneError: naming the argument (see :func:`ground_reaction`).
     """
@@ -291,8 +295,9 @@ def check_inputs(scene, excavation: str, levels: int, *, p0=None, start=None, su
     if start > p0 * (1 + 1e-12):
         raise SceneError("start", f"{start:g} kPa is above p0 = {p0:g} kPa: the curve runs "
                          "from at most the in-situ normal stress at the face down to 0")
+    towards = {m.name: inward(scene, exc, m.name) for m in scene.monitors if m.kind == "point"}
     return dict(excavation=exc, levels=levels, monitor=name, support=line, p0=p0,
-                p0_from=p0_from, start=start)
+                p0_from=p0_from, start=start, inward=towards)
 
 
 def in_situ_pressure(scene, excavation) -> float | None:
@@ -301,8 +306,8 @@ def in_situ_pressure(scene, excavation) -> float | None:
     The mean over the outline, weighted by edge length, of sigma_n = n . sigma . n,
     the normal stress the ``[in_situ]`` stress tensor puts on each edge (compression
     positive). sigma_n is linear along an edge (gravity mode: sigma_yy = gamma
-    (surface_y - y), sigma_xx = K0 sigma_yy, with the unit weight of the domain's
-    material, as :func:`jaxdem.solver.gravity_material`), so its value at the edge's
+    (surface_y - y), sigma_xx = K0 sigma_yy, with the unit weight of the material of
+    :func:`jaxdem.solver.gravity_material`), so its value at the edge's
     midpoint is its mean there. Hydrostatic p0: exactly p0. None without ``[in_situ]``.
     """
     s = scene.in_situ
@@ -314,7 +319,7 @@ def in_situ_pressure(scene, excavation) -> float | None:
     length = np.hypot(edge[:, 0], edge[:, 1])
     n = np.column_stack([edge[:, 1], -edge[:, 0]]) / length[:, None]
     if s.mode == "gravity":
-        gamma = scene.materials[scene.domain.material].unit_weight
+        gamma = scene.materials[_gravity_material(scene)].unit_weight
         syy = gamma * (s.surface_y - mid[:, 1])
         sxx, sxy = s.k0 * syy, 0.0
     else:
@@ -447,6 +452,20 @@ def _excavation(scene, name):
 def _stage_of(scene, item) -> str | None:
     """The stage that excavates or installs ``item`` (None: the scene has no [[stages]])."""
     return item.stage or (scene.stages[0].name if scene.stages else None)
+
+
+def _gravity_material(scene) -> str:
+    """The material of the gravity in-situ stress, as :func:`jaxdem.solver.gravity_material`
+    picks it from the built model: the domain's, else that of the first explicit block
+    whose centroid lies in no excavation."""
+    if scene.domain is not None:
+        return scene.domain.material
+    for b in scene.blocks:
+        c = centroid(np.asarray(b.vertices, float))
+        if not any(point_in_polygon(c, np.asarray(e.vertices, float))
+                   for e in scene.excavations):
+            return b.material
+    return scene.blocks[0].material
 
 
 def _check_levels(levels) -> int:
