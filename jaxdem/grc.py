@@ -33,8 +33,9 @@ under a hydrostatic stress p0), or a value given.
 A level whose solve finds no equilibrium is reported with its status; the
 highest pressure at which a mechanism appears is solved once more alone to
 name the moving blocks (as :func:`jaxdem.fos.write_outputs` does). A level at
-the very edge of a mechanism can end either way from round-off (in a batch and
-alone); when the solve alone finds equilibrium, ``mechanism["note"]`` says so.
+the very edge of a mechanism may end differently in a batch beside other levels
+than alone (docs/ground-reaction.md); when the solve alone finds equilibrium,
+``mechanism["note"]`` says so.
 
 The support characteristic (:class:`SupportLine`) is p_s(u) = min(k (u - u0),
 p_max) for u >= u0 and 0 before: stiffness k (kPa per m of convergence),
