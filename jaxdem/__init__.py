@@ -19,7 +19,8 @@ command line does.
 The package, by concept (README, "Layout"): :mod:`jaxdem.scene` (scene files),
 :mod:`jaxdem.rockmass` (generated blocks), :mod:`jaxdem.core` (the device side),
 :mod:`jaxdem.results`, :mod:`jaxdem.solver`, :mod:`jaxdem.differentiable`,
-:mod:`jaxdem.batch`, :mod:`jaxdem.sweep`, :mod:`jaxdem.fos`, :mod:`jaxdem.vtk`,
+:mod:`jaxdem.batch`, :mod:`jaxdem.sweep`, :mod:`jaxdem.fos`, :mod:`jaxdem.grc` (ground
+reaction curve), :mod:`jaxdem.vtk`,
 :mod:`jaxdem.plots`, :mod:`jaxdem.cli`, :mod:`jaxdem.config`, :mod:`jaxdem.geometry`.
 """
 
@@ -28,6 +29,7 @@ from jaxdem.batch import BatchResult, solve_batch
 from jaxdem.core.status import Status
 from jaxdem.differentiable import differentiable
 from jaxdem.fos import FactorOfSafety, factor_of_safety
+from jaxdem.grc import GroundReaction, ground_reaction
 from jaxdem.results import Result
 from jaxdem.scene import Scene, SceneError, load_scene
 from jaxdem.solver import solve
@@ -36,4 +38,5 @@ from jaxdem.sweep import SweepResult, sweep
 __all__ = ["BatchResult", "FactorOfSafety", "Result", "Scene", "SceneError", "Status",
            "SweepResult", "config", "differentiable", "factor_of_safety", "load_scene", "solve",
            "solve_batch", "sweep"]
+__all__ += ["GroundReaction", "ground_reaction"]  # ground reaction curve (jaxdem.grc)
 __version__ = "0.1.0"

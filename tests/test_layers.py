@@ -21,7 +21,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "jaxdem"
 
 ORDER = ["geometry", "config", "scene", "rockmass", "core", "results", "solver",
-         "differentiable", "batch", "sweep", "plots", "fos", "vtk", "inverse", "cli"]
+         "differentiable", "batch", "sweep", "plots", "fos", "grc", "vtk", "inverse", "cli"]
 """jaxdem's units (a subpackage or a top-level module) and ``inverse``, from the bottom up:
 host input (scene, generated rock), the device side (core), the host results and driver,
 the entry points built on them, figures, the back-analysis, the command line."""
@@ -29,7 +29,7 @@ the entry points built on them, figures, the back-analysis, the command line."""
 LAYERS = ["core.state", "core.status", "core.compile_cache", "core.kinematics", "core.laws",
           "core._contact", "core._springs", "core._linsolve", "core.loads", "core._substep",
           "core.sensitivities", "core.increment", "core.model", "results", "solver",
-          "differentiable", "batch", "sweep", "fos"]
+          "differentiable", "batch", "sweep", "fos", "grc"]
 """The solver's modules (dotted under jaxdem), from the bottom up, as the README's layout
 and each module's docstring describe them."""
 

@@ -9,6 +9,10 @@
            [--method grid|lhs|mc] [--seed S] [--chunk C] [--out DIR] [--set PATH=VALUE ...]
     jaxdem fos SCENE.toml [--out DIR] [--intact] [--tensile] [--trials N] [--tolerance R]
            [--set PATH=VALUE ...]                               # factor of safety
+    jaxdem grc SCENE.toml [--excavation NAME] [--levels K] [--p0 KPA] [--from KPA]
+           [--monitor NAME] [--support-stiffness KPA_PER_M --support-capacity KPA
+           [--install-convergence M]] [--chunk C] [--out DIR] [--set PATH=VALUE ...]
+                                                                # ground reaction curve
     jaxdem back-analyse SCENE.toml --observed FILE.csv --fit PATH [--fit PATH ...]
            [--bounds PATH=LO:HI ...] [--optimizer gauss-newton|lbfgs|adam] [--max-iterations N]
            [--restarts N] [--out DIR] [--set PATH=VALUE ...]    # fit parameters to measurements
@@ -26,6 +30,8 @@ figures when the fit ran. ``fos`` exits 0 when the factor of safety is
 bracketed (or bounded by its limits), 3 when the unstable end of the bracket
 is a trial that stopped at the iteration limit or went non-finite rather
 than a proven mechanism; it writes ``fos.json`` and its figures in both cases.
+``grc`` exits 0 when every level of the curve converged or found a mechanism, 3 when
+a level did neither; it writes ``grc.json`` and ``grc.png`` in both cases.
 
 ``--vtk`` (run, demo) also writes ``blocks.vtk`` and ``contacts.vtk`` (legacy VTK,
 ASCII) for ParaView; ``jaxdem --version`` prints the version.

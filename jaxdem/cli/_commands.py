@@ -1,5 +1,5 @@
 """The subcommands of ``jaxdem`` (``demo``, ``run``, ``check``, ``sweep``, ``fos``,
-``back-analyse``) and the steps they share: load the scene with its ``--set`` overrides,
+``grc``, ``back-analyse``) and the steps they share: load the scene with its ``--set`` overrides,
 refuse an unusable ``--out`` before any computation, solve, write JSON and figures, and
 turn the outcome into an exit status (``EXIT_OK``, ``EXIT_INVALID_INPUT``,
 ``EXIT_NOT_CONVERGED``).
@@ -231,6 +231,82 @@ def cmd_fos(args: argparse.Namespace) -> int:
               + (f", moving blocks: {moving}" if moving else ""))
     print("wrote " + ", ".join(str(p) for p in written))
     return EXIT_OK if result.decided else EXIT_NOT_CONVERGED
+
+
+# --- jaxdem grc: the ground reaction curve (jaxdem.grc) ---------------------------------
+
+#: ground_reaction's argument names -> the grc command's options (for messages).
+GRC_OPTIONS = {"excavation": "--excavation", "levels": "--levels", "p0": "--p0",
+               "start": "--from", "monitor": "--monitor",
+               "support.stiffness": "--support-stiffness",
+               "support.capacity": "--support-capacity",
+               "support.installed_at": "--install-convergence"}
+
+
+def cmd_grc(args: argparse.Namespace) -> int:
+    """Ground reaction curve of an excavation in one batch; write grc.json and grc.png."""
+    from jaxdem.scene import SceneError
+
+    path = Path(args.scene)
+    out = Path(args.out)
+    overrides = _parse_overrides([item for group in args.set or [] for item in group])
+    if args.chunk is not None and args.chunk < 1:
+        raise InputError(f"--chunk must be >= 1 (got {args.chunk})")
+    line = [args.support_stiffness, args.support_capacity]
+    if any(x is not None for x in line) or args.install_convergence is not None:
+        missing = [o for o, x in zip(("--support-stiffness", "--support-capacity"), line,
+                                     strict=True) if x is None]
+        if missing:
+            raise InputError(f"{missing[0]}: required with the other support line options")
+    scene = _load(path, overrides)
+    _check_out(out)
+    excavation = args.excavation
+    if excavation is None:
+        names = [e.name for e in scene.excavations]
+        if len(names) != 1:
+            listed = ", ".join(repr(n) for n in names) or "none"
+            raise InputError(f"--excavation: required, the scene has {len(names)} excavations "
+                             f"({listed})")
+        excavation = names[0]
+    support = None if line[0] is None else dict(
+        stiffness=line[0], capacity=line[1], installed_at=args.install_convergence or 0.0)
+
+    from jaxdem.grc import check_inputs, ground_reaction, write_outputs
+
+    options = dict(p0=args.p0, start=args.start, support=support, monitor=args.monitor)
+    try:
+        checked = check_inputs(scene, excavation, args.levels, **options)
+    except SceneError as err:
+        if err.path in GRC_OPTIONS:
+            raise InputError(f"{GRC_OPTIONS[err.path]}: {err.problem}") from None
+        raise
+    print(f"{scene_name(scene, path, overrides)}: {scene_summary(scene)}")
+    how = "given" if checked["p0_from"] == "given" else "mean in-situ normal stress at the face"
+    print(f"ground reaction curve of {excavation!r}: {plural(args.levels, 'level')} from "
+          f"{checked['start']:.4g} to 0 kPa in one batch (p0 = {checked['p0']:.4g} kPa, {how})",
+          flush=True)
+    bar = SampleBar()
+    try:
+        with bar:
+            curve = ground_reaction(scene, excavation, args.levels, chunk=args.chunk,
+                                    progress=bar, **options)
+    except SceneError:
+        raise
+    except Exception as err:  # noqa: BLE001 - exit codes are 0, 2 and 3 only
+        return _failed("grc", err)
+    written = write_outputs(curve, out)
+    names = list(curve.monitors)
+    print(f"{'p kPa':>10} {'status':>16} " + " ".join(f"{n[:14]:>14}" for n in names))
+    for i, p in enumerate(curve.pressure):
+        values = " ".join(f"{curve.monitors[n][i]:>14.6g}" for n in names)
+        print(f"{p:>10.4g} {curve.status[i]:>16} {values}")
+    print("(m: a section's convergence, a point's displacement towards the opening)")
+    print(curve.message)
+    print("wrote " + ", ".join(str(p) for p in written))
+    return EXIT_NOT_CONVERGED if curve.undecided else EXIT_OK
+
+
+# --- end of jaxdem grc -------------------------------------------------------------------
 
 
 def _prepare_figures() -> None:

@@ -18,6 +18,7 @@ from jaxdem.cli._commands import (
     cmd_check,
     cmd_demo,
     cmd_fos,
+    cmd_grc,
     cmd_run,
     cmd_sweep,
 )
@@ -26,6 +27,7 @@ DEFAULT_DEMO_OUT = "jaxdem-demo"
 DEFAULT_BACK_ANALYSIS_OUT = "jaxdem-back-analysis"
 DEFAULT_SWEEP_OUT = "jaxdem-sweep"
 DEFAULT_FOS_OUT = "jaxdem-fos"
+DEFAULT_GRC_OUT = "jaxdem-grc"
 
 
 def _version() -> str:
@@ -205,4 +207,44 @@ def make_parser() -> argparse.ArgumentParser:
                      help="stop when the bracket's relative width is <= R (default 0.005)")
     _add_set_option(fos, "override scene parameters before the reduction (repeatable)")
     fos.set_defaults(func=cmd_fos)
+    _add_grc_parser(sub)
     return parser
+
+
+def _add_grc_parser(sub) -> None:
+    """``jaxdem grc``: the ground reaction curve of an excavation (jaxdem.grc)."""
+    grc = sub.add_parser(
+        "grc",
+        help="ground reaction curve of an excavation (batched)",
+        description="Ground reaction curve (convergence-confinement method): the excavation "
+        "with a support pressure from the in-situ normal stress at its face p0 (or --from) "
+        "down to 0 in K levels, all solved in one batch; optionally the support line and "
+        "the equilibrium with it. Writes grc.json (pressure, monitors, mechanism, "
+        "equilibrium) and grc.png. Exit 3 when a level neither converged nor found a "
+        "mechanism.",
+    )
+    grc.add_argument("scene", metavar="SCENE.toml")
+    grc.add_argument("--excavation", metavar="NAME",
+                     help="the excavation (default: the scene's only one)")
+    grc.add_argument("--levels", type=int, default=16, metavar="K",
+                     help="support pressures, evenly spaced down to 0 (default 16)")
+    grc.add_argument("--p0", type=float, metavar="KPA",
+                     help="in-situ normal stress at the face (default: the mean normal stress "
+                     "that [in_situ] puts on the excavation's outline)")
+    grc.add_argument("--from", dest="start", type=float, metavar="KPA",
+                     help="highest support pressure, at most p0 (default p0)")
+    grc.add_argument("--monitor", metavar="NAME",
+                     help="the monitor whose value is the convergence of the support line "
+                     "(default: the first section, else the first point's |u|)")
+    grc.add_argument("--support-stiffness", type=float, metavar="KPA_PER_M",
+                     help="support line: kPa of pressure per m of convergence")
+    grc.add_argument("--support-capacity", type=float, metavar="KPA",
+                     help="support line: the largest pressure it carries (kPa)")
+    grc.add_argument("--install-convergence", type=float, metavar="M",
+                     help="support line: the convergence when it is installed (m, default 0)")
+    grc.add_argument("--chunk", type=int, default=None, metavar="C",
+                     help="levels solved together (default: as jaxdem sweep)")
+    grc.add_argument("--out", default=DEFAULT_GRC_OUT, metavar="DIR",
+                     help=f"output folder (default {DEFAULT_GRC_OUT})")
+    _add_set_option(grc, "override scene parameters before the curve (repeatable)")
+    grc.set_defaults(func=cmd_grc)

@@ -24,7 +24,8 @@ solve; each module imports only those above it):
 - :mod:`jaxdem.plots._model`: ``blocks.png``, ``stresses.png``;
 - :mod:`jaxdem.plots._monitors`: ``monitors.png``, ``sections.png``;
 - :mod:`jaxdem.plots._scene`: ``check.png``;
-- :mod:`jaxdem.plots._sweep`: ``tornado.png``.
+- :mod:`jaxdem.plots._sweep`: ``tornado.png``;
+- :mod:`jaxdem.plots._grc`: ``grc.png`` (ground reaction curve).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from jaxdem.plots._canvas import DPI, format_length, nice_ceil, nice_magnification, warm_up
+from jaxdem.plots._grc import plot_ground_reaction
 from jaxdem.plots._model import (
     plot_blocks,
     plot_principal_stresses,
@@ -49,6 +51,7 @@ __all__ = [
     "nice_ceil",
     "nice_magnification",
     "plot_blocks",
+    "plot_ground_reaction",
     "plot_monitor_history",
     "plot_principal_stresses",
     "plot_scene_check",
