@@ -19,7 +19,8 @@ command line does.
 The package, by concept (README, "Layout"): :mod:`jaxdem.scene` (scene files),
 :mod:`jaxdem.rockmass` (generated blocks), :mod:`jaxdem.core` (the device side),
 :mod:`jaxdem.results`, :mod:`jaxdem.solver`, :mod:`jaxdem.differentiable`,
-:mod:`jaxdem.batch`, :mod:`jaxdem.sweep`, :mod:`jaxdem.fos`, :mod:`jaxdem.vtk`,
+:mod:`jaxdem.batch`, :mod:`jaxdem.sweep`, :mod:`jaxdem.fos`, :mod:`jaxdem.reliability`,
+:mod:`jaxdem.vtk`,
 :mod:`jaxdem.plots`, :mod:`jaxdem.cli`, :mod:`jaxdem.config`, :mod:`jaxdem.geometry`.
 """
 
@@ -36,4 +37,9 @@ from jaxdem.sweep import SweepResult, sweep
 __all__ = ["BatchResult", "FactorOfSafety", "Result", "Scene", "SceneError", "Status",
            "SweepResult", "config", "differentiable", "factor_of_safety", "load_scene", "solve",
            "solve_batch", "sweep"]
+
+# Reliability by FORM (issue 31): jaxdem.reliability(scene, vary, limit).
+from jaxdem.reliability import Reliability, reliability  # noqa: E402
+
+__all__ += ["Reliability", "reliability"]
 __version__ = "0.1.0"

@@ -22,6 +22,7 @@ PACKAGE = ROOT / "jaxdem"
 
 ORDER = ["geometry", "config", "scene", "rockmass", "core", "results", "solver",
          "differentiable", "batch", "sweep", "plots", "fos", "vtk", "inverse", "cli"]
+ORDER.insert(ORDER.index("fos") + 1, "reliability")  # FORM on fos, batch, differentiable (issue 31)
 """jaxdem's units (a subpackage or a top-level module) and ``inverse``, from the bottom up:
 host input (scene, generated rock), the device side (core), the host results and driver,
 the entry points built on them, figures, the back-analysis, the command line."""
