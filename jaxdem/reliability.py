@@ -38,15 +38,16 @@ beta = alpha . z* (alpha = -grad g / |grad g|, so beta < 0 when the medians
 already fail) and the probability of failure is Phi(-beta), exact when g is
 linear in z (one variable: whenever g is monotone) and first order otherwise.
 It is found by the HL-RF iteration (Hasofer & Lind 1974, Rackwitz & Fiessler
-1978) with the step-size rule of Zhang & Der Kiureghian (1995, "improved
-HL-RF"): the HL-RF step d is scaled by the largest 2^-k that decreases the
-merit function m(z) = |z|^2 / 2 + c |g(z)| (Armijo, c = 2 max(|z|, |z + d|) /
-|grad g|, which makes d a descent direction). Convergence:
+1978) with the step-size rule of Zhang & Der Kiureghian (1995, "Two improved
+algorithms for reliability analysis": the improved HL-RF): the HL-RF step d
+is scaled by the largest 2^-k that decreases the merit function
+m(z) = |z|^2 / 2 + c |g(z)| (Armijo, c = 2 max(|z|, |z + d|) / |grad g|, which
+makes d a descent direction). Convergence:
 |g| <= tolerance |g(0)| and |z - (alpha . z) alpha| <= tolerance max(1, |z|).
 
 Importance factors are gamma_i^2 with gamma = -grad_y g / |grad_y g| (Der
-Kiureghian 2005, "First- and second-order reliability methods", eq. 14.54:
-gamma^T = alpha^T L^-1 normalised); without correlation gamma = alpha and
+Kiureghian 2005, "First- and second-order reliability methods", the importance
+vector gamma^T = alpha^T L^-1 normalised); without correlation gamma = alpha and
 the alpha_i^2 sum to 1. A positive gamma_i marks a load (failure as x_i
 grows), a negative one a resistance.
 
@@ -428,7 +429,7 @@ class FactorLimitState:
             if _is_reduced(v.path, intact, tensile):
                 reduced.setdefault(v.path, 0.0)
         if not reduced:
-            raise SceneError("--limit stable", "no strength to reduce: every joint "
+            raise SceneError("--limit", "stable: no strength to reduce: every joint "
                              "friction_deg and cohesion is 0 and none is a random variable")
         self.columns = paths + [q for q in reduced if q not in paths]
         self.reduced = reduced
@@ -791,7 +792,6 @@ def reliability(scene, vary: Sequence[Variable | str] | Mapping, limit: str | Li
     R = correlation_matrix(variables, correlation)
     samples = parse_check(check)
     _check_options(max_iterations, tolerance, step, rtol, trials)
-    notes: list[str] = []
     median, _ = transform(variables, np.zeros(len(variables)))
     for v, x in zip(variables, median, strict=True):
         try:
@@ -836,7 +836,8 @@ def reliability(scene, vary: Sequence[Variable | str] | Mapping, limit: str | Li
         alpha=dict(zip(paths, gamma.tolist(), strict=True)),
         importance=dict(zip(paths, (gamma ** 2).tolist(), strict=True)),
         status=form["status"], iterations=max(len(form["history"]) - 1, 0),
-        solves=state.solves, history=history, check=None, warnings=warnings + notes,
+        solves=state.solves, history=history, check=None,
+        warnings=warnings + list(dict.fromkeys(state.notes)),
         options=dict(max_iterations=max_iterations, tolerance=tolerance, intact=intact,
                      tensile=tensile, step=step, rtol=rtol, trials=trials,
                      check=check if check is None else f"mc:{samples}", seed=seed),
@@ -930,7 +931,7 @@ def plot_reliability(result: Reliability, path: str | Path) -> Path:
     Left: each variable's importance gamma_i^2 (red: a load, failure as it grows;
     blue: a resistance). Middle: the design point of each variable in standard
     deviations of its equivalent normal from the median, labelled with its value.
-    Right: beta and g over the iterations (and the Monte Carlo estimate, if any).
+    Right: beta over the iterations (and the Monte Carlo estimate as -Phi^-1(P), if any).
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -956,34 +957,31 @@ def plot_reliability(result: Reliability, path: str | Path) -> Path:
     ax_d.axvline(0.0, color="k", lw=1)
     ax_d.barh(rows, np.nan_to_num(u), color="0.6")
     for r, v, ui in zip(rows, result.variables, u, strict=True):
+        # The label on the other side of the zero line, where the bar leaves room.
         median = float(transform([v], np.zeros(1))[0][0])
-        ax_d.text(ui, r, f" {result.design_point[v.path]:.4g} (median {median:.4g}) ",
-                  va="center", ha="left" if ui >= 0 else "right", fontsize=8)
-    lim = max(3.0, 1.6 * float(np.nanmax(np.abs(u))) if np.any(np.isfinite(u)) else 3.0)
+        ax_d.text(0.0, r, f" {result.design_point[v.path]:.4g} (median {median:.4g}) ",
+                  va="center", ha="right" if ui >= 0 else "left", fontsize=8)
+    lim = max(3.0, 1.2 * float(np.nanmax(np.abs(u))) if np.any(np.isfinite(u)) else 3.0)
     ax_d.set_xlim(-lim, lim)
     ax_d.set_yticks(rows)
     ax_d.set_yticklabels([])
     ax_d.set_xlabel("design point: standard deviations from the median (u)")
     it = [h["iteration"] for h in result.history]
     ax_h.plot(it, [h["beta"] for h in result.history], "o-", color="tab:purple",
-              label="beta (alpha . u)")
+              label="beta at each iteration (alpha . u)")
     ax_h.set_xlabel("iteration")
     ax_h.set_ylabel("beta")
-    if result.check is not None and result.check["decided"] and 0 < result.check["probability"] < 1:
+    c = result.check
+    if c is not None and c["decided"] and 0 < c["probability"] < 1:
         from scipy.special import ndtri
 
-        c = result.check
         b = -float(ndtri(c["probability"]))
-        lo, hi = (-float(ndtri(q)) if 0 < q < 1 else np.nan for q in c["ci95"][::-1])
-        ax_h.axhspan(lo if np.isfinite(lo) else b, hi if np.isfinite(hi) else b,
-                     color="tab:green", alpha=0.2, label=f"Monte Carlo, {c['samples']:,} "
-                     "solves (95%)")
+        lo, hi = (-float(ndtri(q)) if 0 < q < 1 else b for q in c["ci95"][::-1])
+        ax_h.axhspan(lo, hi, color="tab:green", alpha=0.2,
+                     label=f"Monte Carlo, {c['samples']:,} solves: -Phi^-1(P), 95%")
         ax_h.axhline(b, color="tab:green", lw=1)
-    twin = ax_h.twinx()
-    twin.plot(it, [h["g"] for h in result.history], "s--", color="0.5", ms=3, label="g")
-    twin.axhline(0.0, color="0.5", lw=0.5)
-    twin.set_ylabel("g (failure g <= 0)")
-    ax_h.legend(loc="best", fontsize=8)
+    ax_h.set_xticks(it)
+    ax_h.legend(loc="lower right", fontsize=8)
     fig.suptitle(f"{result.scene}: {result.limit.describe()}\nbeta = {result.beta:.4g}, "
                  f"P_f = {result.probability:.3g} ({result.status}, {result.iterations} "
                  f"iterations)", fontsize=10)

@@ -201,3 +201,26 @@ def test_cli_writes_reliability_json_and_figure(block_file, tmp_path, capsys):
     assert sum(data["importance"].values()) == pytest.approx(1.0)
     assert data["solves"]["with_sensitivities"] >= 2
     assert "beta = " in captured.out and "design point" in captured.out
+
+
+def test_cli_exits_3_when_the_medians_have_no_equilibrium(tmp_path, capsys):
+    """A block on a 35 deg plane with 30 deg friction slides at the medians: a
+    serviceability limit has no value there, FORM cannot start (exit 3, said in the JSON)."""
+    scene = tmp_path / "sliding.toml"
+    d = block_on_incline(35.0, 30.0)
+    lines = ['[scene]\nname = "sliding"\n[solver]\nload_steps = 1\nmax_displacement = 0.05\n',
+             "[materials.rock]\nE = 1e7\nnu = 0.25\nunit_weight = 25.0\n",
+             "[joints.base]\nkn = 1e6\nks = 5e5\nfriction_deg = 30.0\n"]
+    for b in d["blocks"]:
+        lines.append(f"[[blocks]]\nvertices = {[[float(x), float(y)] for x, y in b['vertices']]}"
+                     f"\nmaterial = \"rock\"\nfixed = {str(b.get('fixed', False)).lower()}\n")
+    lines.append(f"[[monitors]]\nname = \"block\"\npoint = {d['monitors'][0]['point']}\n")
+    scene.write_text("\n".join(lines))
+    out = tmp_path / "rel"
+    code = main(["reliability", str(scene), "--vary", "joints.base.kn=lognormal:1e6:2e5",
+                 "--limit", "block.|u| <= 0.01", "--out", str(out)])
+    captured = capsys.readouterr()
+    assert code == 3, captured.err
+    data = json.loads((out / "reliability.json").read_text())
+    assert data["status"] == "no_answer_at_start" and not data["converged"]
+    assert data["beta"] is None and any("cannot start" in w for w in data["warnings"])
