@@ -95,6 +95,7 @@ LINE_SEARCH_FAILED = "line_search_failed"
 LIMIT_NOT_REACHED = "limit_not_reached"
 NO_GRADIENT = "no_gradient"
 NO_ANSWER_AT_START = "no_answer_at_start"
+#: Most Monte Carlo samples of a check (--check mc:N).
 MAX_CHECK_SAMPLES = 1_000_000
 #: Samples of each batched call of the factor-of-safety brackets (padded to it): every
 #: call has the same shape, so its program compiles once.

@@ -39,7 +39,8 @@ COHESION = "joints.base.cohesion"
 @pytest.fixture(scope="module")
 def incline():
     scene = parse_scene(block_on_incline(25.0, 30.0))
-    return jaxdem.reliability(scene, [f"{FRICTION}=normal:30:3"], "stable")
+    return jaxdem.reliability(scene, [f"{FRICTION}=normal:30:3"], "stable", check="mc:96",
+                              seed=10)
 
 
 def test_incline_friction_ultimate_beta_is_five_thirds(incline):
@@ -52,6 +53,16 @@ def test_incline_friction_ultimate_beta_is_five_thirds(incline):
     assert r.importance == pytest.approx({FRICTION: 1.0})
     assert r.alpha[FRICTION] < 0                  # friction is a resistance
     assert r.solves["with_sensitivities"] == 0 and r.solves["plain"] > 0
+
+
+def test_incline_monte_carlo_fails_exactly_where_friction_is_below_the_slope(incline):
+    """The check's samples are phi = 30 + 3 z (z standard normal, the seed's); a sample
+    fails (a mechanism at F = 1) exactly where phi < 25 deg (5 of 96 with seed 10, whose
+    nearest sample lies 0.49 deg from the limit)."""
+    c = incline.check
+    z = np.random.default_rng(10).standard_normal((96, 1))
+    assert c["failures"] == int(np.sum(30.0 + 3.0 * z < 25.0)) and c["undecided"] == 0
+    assert c["ci95"][0] <= incline.probability <= c["ci95"][1]
 
 
 def test_incline_factor_and_its_derivative_match_tan_phi_over_tan_alpha(incline):
