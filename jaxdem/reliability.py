@@ -946,7 +946,7 @@ def plot_reliability(result: Reliability, path: str | Path) -> Path:
     share = np.array([result.importance[q] for q in paths])
     sign = np.array([result.alpha[q] for q in paths])
     colours = ["tab:red" if s > 0 else "tab:blue" for s in sign]
-    ax_i.barh(rows, 100 * np.nan_to_num(share), color=colours)
+    ax_i.barh(rows, 100 * np.nan_to_num(share), color=colours, height=0.6)
     for r, s in zip(rows, share, strict=True):
         if np.isfinite(s):
             ax_i.text(100 * s, r, f" {100 * s:.1f}%", va="center", fontsize=8)
@@ -956,7 +956,9 @@ def plot_reliability(result: Reliability, path: str | Path) -> Path:
     ax_i.set_xlabel("importance factor (%): red a load, blue a resistance")
     u = np.array([result.design_point_u[q] for q in paths])
     ax_d.axvline(0.0, color="k", lw=1)
-    ax_d.barh(rows, np.nan_to_num(u), color="0.6")
+    ax_d.barh(rows, np.nan_to_num(u), color="0.6", height=0.6)
+    for ax in (ax_i, ax_d):
+        ax.set_ylim(-0.8, max(p, 2) - 0.2)
     for r, v, ui in zip(rows, result.variables, u, strict=True):
         # The label on the other side of the zero line, where the bar leaves room.
         median = float(transform([v], np.zeros(1))[0][0])
