@@ -20,7 +20,7 @@ The package, by concept (README, "Layout"): :mod:`jaxdem.scene` (scene files),
 :mod:`jaxdem.rockmass` (generated blocks), :mod:`jaxdem.core` (the device side),
 :mod:`jaxdem.results`, :mod:`jaxdem.solver`, :mod:`jaxdem.differentiable`,
 :mod:`jaxdem.batch`, :mod:`jaxdem.sweep`, :mod:`jaxdem.fos`, :mod:`jaxdem.grc` (ground
-reaction curve), :mod:`jaxdem.vtk`,
+reaction curve), :mod:`jaxdem.reliability` (FORM), :mod:`jaxdem.vtk`,
 :mod:`jaxdem.plots`, :mod:`jaxdem.cli`, :mod:`jaxdem.config`, :mod:`jaxdem.geometry`.
 """
 
@@ -30,13 +30,13 @@ from jaxdem.core.status import Status
 from jaxdem.differentiable import differentiable
 from jaxdem.fos import FactorOfSafety, factor_of_safety
 from jaxdem.grc import GroundReaction, ground_reaction
+from jaxdem.reliability import Reliability, reliability
 from jaxdem.results import Result
 from jaxdem.scene import Scene, SceneError, load_scene
 from jaxdem.solver import solve
 from jaxdem.sweep import SweepResult, sweep
 
-__all__ = ["BatchResult", "FactorOfSafety", "Result", "Scene", "SceneError", "Status",
-           "SweepResult", "config", "differentiable", "factor_of_safety", "load_scene", "solve",
-           "solve_batch", "sweep"]
-__all__ += ["GroundReaction", "ground_reaction"]  # ground reaction curve (jaxdem.grc)
+__all__ = ["BatchResult", "FactorOfSafety", "GroundReaction", "Reliability", "Result", "Scene",
+           "SceneError", "Status", "SweepResult", "config", "differentiable", "factor_of_safety",
+           "ground_reaction", "load_scene", "reliability", "solve", "solve_batch", "sweep"]
 __version__ = "0.1.0"

@@ -21,7 +21,8 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "jaxdem"
 
 ORDER = ["geometry", "config", "scene", "rockmass", "core", "results", "solver",
-         "differentiable", "batch", "sweep", "plots", "fos", "grc", "vtk", "inverse", "cli"]
+         "differentiable", "batch", "sweep", "plots", "fos", "reliability", "grc", "vtk",
+         "inverse", "cli"]
 """jaxdem's units (a subpackage or a top-level module) and ``inverse``, from the bottom up:
 host input (scene, generated rock), the device side (core), the host results and driver,
 the entry points built on them, figures, the back-analysis, the command line."""

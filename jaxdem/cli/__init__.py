@@ -16,6 +16,8 @@
     jaxdem back-analyse SCENE.toml --observed FILE.csv --fit PATH [--fit PATH ...]
            [--bounds PATH=LO:HI ...] [--optimizer gauss-newton|lbfgs|adam] [--max-iterations N]
            [--restarts N] [--out DIR] [--set PATH=VALUE ...]    # fit parameters to measurements
+    jaxdem reliability SCENE.toml --vary PATH=DIST:ARGS [...] --limit LIMIT [--check mc:N]
+           [--correlation A,B=RHO ...] [--out DIR] [--set PATH=VALUE ...]   # FORM
 
 Exit status: 0 when solved (stable or not: a mechanism is an answer), 2 on
 invalid input (one line ``error: <message>`` on stderr naming the field, no

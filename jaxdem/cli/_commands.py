@@ -429,3 +429,90 @@ def _failed(command: str, err: Exception) -> int:
 
 def print_error(message: str) -> None:
     print(f"error: {message}", file=sys.stderr)
+
+
+# ---------------------------------------------------------------------------
+# reliability (issue 31)
+
+
+def cmd_reliability(args: argparse.Namespace) -> int:
+    """FORM reliability index (issue 31); write reliability.json and reliability.png.
+
+    Exit 0 when FORM ran (converged or not: its warnings say so), 2 on invalid input,
+    3 when g has no value at the medians (no equilibrium: FORM cannot start) or a solve
+    raised.
+    """
+    path = Path(args.scene)
+    out = Path(args.out)
+    overrides = _parse_overrides([item for group in args.set or [] for item in group])
+    if args.seed < 0:
+        raise InputError(f"--seed must be >= 0 (got {args.seed})")
+    if not 1 <= args.max_iterations <= MAX_FIT_ITERATIONS:
+        raise InputError(f"--max-iterations must be from 1 to {MAX_FIT_ITERATIONS:,} "
+                         f"(got {args.max_iterations})")
+    if args.chunk is not None and args.chunk < 1:
+        raise InputError(f"--chunk must be >= 1 (got {args.chunk})")
+    scene = _load(path, overrides)
+    _check_out(out)
+
+    from jaxdem.reliability import (
+        NO_ANSWER_AT_START,
+        Limit,
+        check_variables,
+        correlation_matrix,
+        parse_check,
+        reliability,
+        write_outputs,
+    )
+    from jaxdem.scene import SceneError
+    from jaxdem.sweep import Variable
+
+    variables = [Variable.parse(v) for group in args.vary for v in group]
+    check_variables(variables)
+    limit = Limit.parse(args.limit, scene)
+    correlation = _parse_correlation([c for group in args.correlation or [] for c in group])
+    correlation_matrix(variables, correlation)
+    samples = parse_check(args.check)
+
+    def report(r: dict[str, Any]) -> None:
+        print(f"iteration {r['iteration']}: beta {r['beta']:.5g}, g {r['g']:.5g}"
+              + ("" if r["step"] is None else f", step {r['step']:g}"), file=sys.stderr,
+              flush=True)
+
+    print(f"{scene_name(scene, path, overrides)}: {scene_summary(scene)}")
+    print(f"FORM, {limit.describe()}; " + "; ".join(f"{v.path} {v.describe()}"
+                                                     for v in variables), flush=True)
+    try:
+        result = reliability(scene, variables, limit, correlation=correlation,
+                             check=samples, seed=args.seed, max_iterations=args.max_iterations,
+                             intact=args.intact, chunk=args.chunk, progress=report)
+    except SceneError:
+        raise
+    except Exception as err:  # noqa: BLE001 - exit codes are 0, 2 and 3 only
+        return _failed("reliability", err)
+    written = write_outputs(result, out)
+    print(result.message())
+    print("design point: " + ", ".join(f"{k} = {v:.5g}" for k, v in result.design_point.items()))
+    print("wrote " + ", ".join(str(p) for p in written))
+    return EXIT_NOT_CONVERGED if result.status == NO_ANSWER_AT_START else EXIT_OK
+
+
+def _parse_correlation(items: Sequence[str]) -> dict[tuple[str, str], float] | None:
+    """``--correlation PATH_A,PATH_B=RHO`` arguments to {(a, b): rho}; bad syntax raises
+    SceneError (exit 2). Whether the pairs make a correlation matrix is checked later."""
+    if not items:
+        return None
+    from jaxdem.scene import SceneError
+
+    out: dict[tuple[str, str], float] = {}
+    for item in items:
+        pair, equals, text = item.partition("=")
+        a, comma, b = pair.partition(",")
+        if not equals or not comma or not a.strip() or not b.strip():
+            raise SceneError("--correlation", f"expected PATH_A,PATH_B=RHO (got {item!r})")
+        try:
+            out[(a.strip(), b.strip())] = float(text)
+        except ValueError:
+            raise SceneError("--correlation", f"RHO of {pair} must be a number "
+                                              f"(got {text!r})") from None
+    return out

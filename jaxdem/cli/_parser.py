@@ -19,6 +19,7 @@ from jaxdem.cli._commands import (
     cmd_demo,
     cmd_fos,
     cmd_grc,
+    cmd_reliability,
     cmd_run,
     cmd_sweep,
 )
@@ -28,6 +29,7 @@ DEFAULT_BACK_ANALYSIS_OUT = "jaxdem-back-analysis"
 DEFAULT_SWEEP_OUT = "jaxdem-sweep"
 DEFAULT_FOS_OUT = "jaxdem-fos"
 DEFAULT_GRC_OUT = "jaxdem-grc"
+DEFAULT_RELIABILITY_OUT = "jaxdem-reliability"
 
 
 def _version() -> str:
@@ -208,6 +210,7 @@ def make_parser() -> argparse.ArgumentParser:
     _add_set_option(fos, "override scene parameters before the reduction (repeatable)")
     fos.set_defaults(func=cmd_fos)
     _add_grc_parser(sub)
+    _add_reliability(sub)
     return parser
 
 
@@ -248,3 +251,42 @@ def _add_grc_parser(sub) -> None:
                      help=f"output folder (default {DEFAULT_GRC_OUT})")
     _add_set_option(grc, "override scene parameters before the curve (repeatable)")
     grc.set_defaults(func=cmd_grc)
+
+
+def _add_reliability(sub) -> None:
+    """``jaxdem reliability`` (issue 31): FORM on the model's own gradients."""
+    rel = sub.add_parser(
+        "reliability",
+        help="reliability index by FORM (HL-RF) with the model's gradients",
+        description="First-order reliability method: the reliability index beta, the "
+        "probability of failure Phi(-beta), the design point and the importance factors of "
+        "random scene parameters for a limit state (a monitor against a limit, or the "
+        "factor of safety >= 1); write reliability.json and reliability.png.",
+    )
+    rel.add_argument("scene", metavar="SCENE.toml")
+    rel.add_argument(
+        "--vary", action="append", nargs="+", required=True, metavar="PATH=DIST",
+        help="a random parameter: PATH=normal:MEAN:SD, PATH=lognormal:MEAN:SD, "
+        "PATH=uniform:LOW:HIGH, PATH=truncnormal:MEAN:SD:LOW:HIGH (repeatable)")
+    rel.add_argument(
+        "--limit", required=True, metavar="LIMIT",
+        help="failure criterion: 'MONITOR.|u| <= V', 'MONITOR.ux >= V', 'MONITOR.uy >= V' "
+        "(a point, m), 'SECTION <= V' (a section's convergence, m), or 'stable' (the "
+        "factor of safety F >= 1, g = F - 1)")
+    rel.add_argument(
+        "--correlation", action="append", nargs="+", metavar="PATH_A,PATH_B=RHO",
+        help="correlation of two variables' standard normals (default: independent; "
+        "repeatable)")
+    rel.add_argument("--check", metavar="mc:N",
+                     help="also estimate the probability by N Monte Carlo solves (batched)")
+    rel.add_argument("--seed", type=int, default=0, help="Monte Carlo seed (default 0)")
+    rel.add_argument("--max-iterations", type=int, default=30, metavar="N",
+                     help="most HL-RF iterations (default 30)")
+    rel.add_argument("--intact", action="store_true",
+                     help="stable: also reduce the intact rock's friction and cohesion")
+    rel.add_argument("--chunk", type=int, default=None, metavar="C",
+                     help="samples per batch (default: as jaxdem sweep)")
+    rel.add_argument("--out", default=DEFAULT_RELIABILITY_OUT, metavar="DIR",
+                     help=f"output folder (default {DEFAULT_RELIABILITY_OUT})")
+    _add_set_option(rel, "override scene parameters before the analysis (repeatable)")
+    rel.set_defaults(func=cmd_reliability)
