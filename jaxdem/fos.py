@@ -308,6 +308,8 @@ def plot_trials(fos: FactorOfSafety, path: str | Path) -> Path:
     from matplotlib.figure import Figure
     from matplotlib.ticker import FormatStrFormatter
 
+    from jaxdem.plots import save_figure
+
     n = max(len(fos.rounds), 1)
     fig = Figure(figsize=(8, 0.5 + 1.1 * n))
     FigureCanvasAgg(fig)
@@ -343,13 +345,7 @@ def plot_trials(fos: FactorOfSafety, path: str | Path) -> Path:
                       + f" ({fos.status}, {len(fos.rounds)} rounds, {fos.solves} trial solves)")
     fig.legend(loc="upper left", bbox_to_anchor=(0.91, 0.95), fontsize=8, frameon=False)
     fig.tight_layout(rect=(0, 0, 0.9, 1))
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        fig.savefig(path, dpi=150, bbox_inches="tight")
-    finally:
-        fig.clear()
-    return path
+    return save_figure(fig, path)
 
 
 # ---------------------------------------------------------------------------

@@ -937,6 +937,8 @@ def plot_reliability(result: Reliability, path: str | Path) -> Path:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
+    from jaxdem.plots import save_figure
+
     paths = [v.path for v in result.variables]
     p = len(paths)
     fig = Figure(figsize=(13, 1.6 + 0.45 * max(p, 3)))
@@ -989,13 +991,7 @@ def plot_reliability(result: Reliability, path: str | Path) -> Path:
                  f"P_f = {result.probability:.3g} ({result.status}, {result.iterations} "
                  f"iterations)", fontsize=10)
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        fig.savefig(path, dpi=150, bbox_inches="tight")
-    finally:
-        fig.clear()
-    return path
+    return save_figure(fig, path)
 
 
 __all__ = ["COMPONENTS", "DISTRIBUTIONS", "FactorLimitState", "Limit", "MonitorLimitState",

@@ -32,7 +32,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from jaxdem.plots._canvas import DPI, format_length, nice_ceil, nice_magnification, warm_up
+from jaxdem.plots._canvas import (
+    DPI,
+    format_length,
+    nice_ceil,
+    nice_magnification,
+    save_figure,
+    warm_up,
+)
 from jaxdem.plots._grc import plot_ground_reaction
 from jaxdem.plots._model import (
     plot_blocks,
@@ -58,6 +65,7 @@ __all__ = [
     "plot_sections",
     "plot_tornado",
     "principal_stresses",
+    "save_figure",
     "stage_axis",
     "stress_crosses",
     "warm_up",
