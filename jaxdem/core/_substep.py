@@ -92,9 +92,9 @@ def force_scales(model: Model, sub: Sub):
 
 #: A slot whose state flips this many times in one sub-step is held in its last state
 #: for the rest of it (open/close and stick/slip chatter). 4 froze slots on their way
-#: to an answer: with 12, seed example 4 (wet) takes 685 iterations instead of 721 with
-#: the line search and the pierced slots below (816 with 4), BENCHMARKS.md "Issue 30,
-#: Newton".
+#: to an answer: with the line search and the pierced slots below, seed example 4 (wet)
+#: takes 685 iterations with 12 and 816 with 4 (721 before all three), BENCHMARKS.md
+#: "Issue 30, Newton".
 FREEZE_AFTER = 12
 #: Halvings of a Newton step that the line search tries before it takes the whole step.
 LINE_SEARCH_HALVINGS = 8
@@ -246,7 +246,8 @@ def _newton(model: Model, sub: Sub, st0):
         # assembled nor factorised (one factorisation a sub-step). Under vmap
         # a cond on a per-member flag would run both branches, so a batch
         # (model.lanes) skips only when none of its members needs a step; the
-        # sparse path also skips the solve of each member that does not.
+        # sparse path's SciPy fallback also skips the host solve of each member
+        # that does not (sparsax's batched call solves them all).
         idle = converged
         if model.lanes is not None:
             idle = jax.lax.psum(jnp.where(converged | c.done, 0, 1), model.lanes) == 0
