@@ -122,8 +122,9 @@ def _tangent_solve(model: Model, sub: Sub, terms, rhs):
         x = jnp.where(jnp.all(jnp.isfinite(x)), x, jnp.nan)
     else:
         rows, cols, blocks = stiffness_blocks(model, sub, a, b, L, Rt, k, diag)
-        solve = sparse_lu(model, *stiffness_blocks(model, sub, a, b, L, Rt, k,
-                                                   jnp.where(free, pm, 1.0)))
+        # K + eps M: the pseudo-mass added to K's own diagonal blocks (the last N).
+        pm_blocks = pm.reshape(N, D)[:, :, None] * jnp.eye(D, dtype=blocks.dtype)
+        solve = sparse_lu(model, rows, cols, blocks.at[-N:].add(pm_blocks))
         if solve is None:  # without sparsax: SciPy's SuperLU on the host
             x = jax.pure_callback(_host_tangent_solve, jax.ShapeDtypeStruct(B.shape, B.dtype),
                                   rows, cols, blocks, pm, B, vmap_method="sequential")
