@@ -78,7 +78,7 @@ import numpy as np
 from jaxdem.config import float64
 from jaxdem.results import jsonable, write_json
 from jaxdem.scene import SceneError
-from jaxdem.sweep import Variable, probability_of_instability
+from jaxdem.sweep import Variable, check_values, probability_of_instability
 
 #: The distributions a random variable may have (a range LOW:HIGH is not one).
 DISTRIBUTIONS = ("normal", "lognormal", "uniform", "truncnormal")
@@ -616,14 +616,7 @@ def monte_carlo(scene, variables, limit: Limit, R: np.ndarray, samples: int, *,
     rng = np.random.default_rng(seed)
     z = rng.standard_normal((samples, len(variables)))
     X, _ = transform(variables, z @ np.linalg.cholesky(R).T)
-    for j, v in enumerate(variables):          # the scene's ranges, before any solve
-        for i in (int(np.argmin(X[:, j])), int(np.argmax(X[:, j]))):
-            try:
-                scene.with_overrides({v.path: float(X[i, j])})
-            except SceneError as err:
-                raise SceneError(f"--vary {v.path}", f"Monte Carlo sample {i} drew "
-                                 f"{X[i, j]:g} from {v.describe()}, which the scene "
-                                 f"refuses: {err.problem}") from None
+    check_values(scene, variables, X)  # the scene's ranges, before any solve
     t0 = time.perf_counter()
     b = solve_batch(scene, [v.path for v in variables], X, chunk=chunk, progress=progress)
     mechanism = ~b.stable

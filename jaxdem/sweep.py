@@ -289,7 +289,7 @@ def sweep(scene, vary: Sequence[Variable | str] | Mapping, samples: int, *,
     if method is None:
         method = "grid" if all(v.kind == "range" for v in variables) else "lhs"
     theta = draw(variables, samples, method, seed)
-    _check_values(scene, variables, theta)
+    check_values(scene, variables, theta)
     extra = np.array([[v.tornado_points()[1] for v in variables]])
     if tornado:
         for j, v in enumerate(variables):
@@ -384,8 +384,10 @@ def _take(batch: BatchResult, rows: slice) -> BatchResult:
         iterations=batch.iterations[rows])
 
 
-def _check_values(scene, variables, theta) -> None:
-    """Refuse draws the scene would refuse (a negative stiffness from a wide normal)."""
+def check_values(scene, variables, theta) -> None:
+    """Refuse draws the scene would refuse (a negative stiffness from a wide normal): the
+    path with the first draw, then each variable's smallest and largest draw; a
+    SceneError naming ``--vary PATH``."""
     for j, v in enumerate(variables):
         try:  # the path itself first: a typo is the parameter's fault, not a sample's
             apply_overrides(scene.data, {v.path: float(theta[0, j])})
@@ -401,4 +403,5 @@ def _check_values(scene, variables, theta) -> None:
                                  ) from None
 
 
-__all__ = ["METHODS", "SweepResult", "Variable", "draw", "probability_of_instability", "sweep"]
+__all__ = ["METHODS", "SweepResult", "Variable", "check_values", "draw",
+           "probability_of_instability", "sweep"]
