@@ -85,7 +85,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     """Solve a scene file with ``--set`` overrides and write results and figures."""
     path = Path(args.scene)
     out = Path(args.out) if args.out else Path("out") / path.stem
-    overrides = _parse_overrides([item for group in args.set or [] for item in group])
+    overrides = _set_overrides(args)
     return _solve_and_report(path, out, overrides=overrides, vtk=args.vtk,
                              figures=not args.no_figures)
 
@@ -108,7 +108,7 @@ def cmd_back_analyse(args: argparse.Namespace) -> int:
     """Fit scene parameters to measured monitor values; write back_analysis.json and figures."""
     path = Path(args.scene)
     out = Path(args.out)
-    overrides = _parse_overrides([item for group in args.set or [] for item in group])
+    overrides = _set_overrides(args)
     bounds = _parse_bounds([item for group in args.bounds or [] for item in group])
     if not 0 <= args.max_iterations <= MAX_FIT_ITERATIONS:
         what = ">= 0" if args.max_iterations < 0 else f"<= {MAX_FIT_ITERATIONS:,}"
@@ -155,9 +155,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     """Solve a scene over sampled parameters (batched); write sweep.csv, sweep.json, tornado.png."""
     path = Path(args.scene)
     out = Path(args.out)
-    overrides = _parse_overrides([item for group in args.set or [] for item in group])
-    if args.chunk is not None and args.chunk < 1:
-        raise InputError(f"--chunk must be >= 1 (got {args.chunk})")
+    overrides = _set_overrides(args)
+    _check_chunk(args)
     if args.seed < 0:
         raise InputError(f"--seed must be >= 0 (got {args.seed})")
     scene = _load(path, overrides)
@@ -201,7 +200,7 @@ def cmd_fos(args: argparse.Namespace) -> int:
     """Factor of safety by strength reduction; write fos.json, mechanism.png and fos.png."""
     path = Path(args.scene)
     out = Path(args.out)
-    overrides = _parse_overrides([item for group in args.set or [] for item in group])
+    overrides = _set_overrides(args)
     if not 2 <= args.trials <= MAX_TRIALS:
         raise InputError(f"--trials must be an integer from 2 to {MAX_TRIALS} "
                          f"(got {args.trials})")
@@ -249,9 +248,8 @@ def cmd_grc(args: argparse.Namespace) -> int:
 
     path = Path(args.scene)
     out = Path(args.out)
-    overrides = _parse_overrides([item for group in args.set or [] for item in group])
-    if args.chunk is not None and args.chunk < 1:
-        raise InputError(f"--chunk must be >= 1 (got {args.chunk})")
+    overrides = _set_overrides(args)
+    _check_chunk(args)
     line = [args.support_stiffness, args.support_capacity]
     if any(x is not None for x in line) or args.install_convergence is not None:
         missing = [o for o, x in zip(("--support-stiffness", "--support-capacity"), line,
@@ -383,6 +381,17 @@ def _check_out(out: Path) -> None:
             return
 
 
+def _set_overrides(args: argparse.Namespace) -> dict[str, Any]:
+    """The command's ``--set`` groups (``args.set``, a list of lists or None) as a dict."""
+    return _parse_overrides([item for group in args.set or [] for item in group])
+
+
+def _check_chunk(args: argparse.Namespace) -> None:
+    """Refuse a ``--chunk`` below 1 (exit 2)."""
+    if args.chunk is not None and args.chunk < 1:
+        raise InputError(f"--chunk must be >= 1 (got {args.chunk})")
+
+
 def _parse_overrides(items: Sequence[str]) -> dict[str, Any]:
     """``--set PATH=VALUE`` arguments to a dict; bad syntax raises SceneError (exit 2)."""
     if not items:
@@ -444,14 +453,13 @@ def cmd_reliability(args: argparse.Namespace) -> int:
     """
     path = Path(args.scene)
     out = Path(args.out)
-    overrides = _parse_overrides([item for group in args.set or [] for item in group])
+    overrides = _set_overrides(args)
     if args.seed < 0:
         raise InputError(f"--seed must be >= 0 (got {args.seed})")
     if not 1 <= args.max_iterations <= MAX_FIT_ITERATIONS:
         raise InputError(f"--max-iterations must be from 1 to {MAX_FIT_ITERATIONS:,} "
                          f"(got {args.max_iterations})")
-    if args.chunk is not None and args.chunk < 1:
-        raise InputError(f"--chunk must be >= 1 (got {args.chunk})")
+    _check_chunk(args)
     scene = _load(path, overrides)
     _check_out(out)
 
