@@ -193,13 +193,49 @@ def test_persistent_compilation_cache(tmp_path):
     assert total(second) < 0.3 * total(first), (first, second)
     assert second["lower_s"] == 0.0 < first["lower_s"], (first, second)
     assert again == answer
-    # A program that JAX loads from its own cache is not stored (its copy would
-    # lack its kernels and fail when called): the next run traces, loads from
-    # JAX's cache again, and answers the same.
+    # A program that JAX loads from its own cache cannot be stored (its copy would
+    # lack its kernels and fail when called): with its stored copy gone, the next run
+    # traces it and compiles it afresh (JAX's copy is not used), stores it, and
+    # answers the same; the run after loads it again.
     shutil.rmtree(cache / "programs")
-    run(tmp_path / "r3", {"JAXDEM_CACHE_DIR": str(cache)})
-    assert not (cache / "programs").exists() or not any((cache / "programs").iterdir())
-    assert run(tmp_path / "r4", {"JAXDEM_CACHE_DIR": str(cache)})[1] == answer
+    third, answer3 = run(tmp_path / "r3", {"JAXDEM_CACHE_DIR": str(cache)})
+    assert third["lower_s"] > 0.0 and any((cache / "programs").iterdir())
+    fourth, answer4 = run(tmp_path / "r4", {"JAXDEM_CACHE_DIR": str(cache)})
+    assert fourth["lower_s"] == 0.0, fourth
+    assert answer3 == answer4 == answer
+
+
+def test_a_program_jax_has_cached_under_its_text_is_stored_for_a_new_source(tmp_path):
+    """A change of the jaxdem source gives every stored program a new key, while a program
+    the change does not touch lowers to the same text. JAX's persistent cache, keyed on
+    that text, must not serve it: its executable could not be stored, and every later run
+    would trace and lower it again (1.6-2.2 s of a warm run before this was found). Each
+    stored program is compiled under a salt of its own key, so after the change the
+    program is compiled afresh and stored once more, and the run after loads it; all
+    three answer the same. (The source digest is replaced in each process.)"""
+    scene = ROOT / "examples" / "block_on_incline.toml"
+    code = (
+        "import json, sys\n"
+        "import jaxdem\n"
+        "jaxdem.config.configure()\n"
+        "from jaxdem.core import compile_cache\n"
+        "compile_cache._source_digest = lambda: sys.argv[1]\n"
+        "r = jaxdem.solve(jaxdem.load_scene(sys.argv[2]))\n"
+        "print(json.dumps([compile_cache.COMPILE_TIMES['lower_s'], r.monitors]))\n")
+
+    def run(digest):
+        out = subprocess.run([sys.executable, "-c", code, digest, str(scene)], check=True,
+                             capture_output=True, text=True, cwd=ROOT, timeout=600,
+                             env={**os.environ, "JAXDEM_CACHE_DIR": str(tmp_path)})
+        lower_s, monitors = json.loads(out.stdout.strip().splitlines()[-1])
+        return lower_s, monitors, len(list((tmp_path / "programs").glob("*.pkl")))
+
+    lower1, answer1, stored1 = run("source one")
+    lower2, answer2, stored2 = run("source two")
+    lower3, answer3, stored3 = run("source two")
+    assert lower1 > 0.0 and lower2 > 0.0 and lower3 == 0.0, (lower1, lower2, lower3)
+    assert stored2 > stored1 == stored3 - (stored2 - stored1) and stored3 == stored2
+    assert answer1 == answer2 == answer3
 
 
 def test_a_stored_program_is_found_only_for_its_own_key():

@@ -29,9 +29,9 @@ def xla_compiles(monkeypatch):
     calls = []
     compile_ = compile_cache._xla_compile
 
-    def counted(lowered, quick=False):
+    def counted(lowered, quick=False, salt=None):
         calls.append(threading.current_thread().name)
-        return compile_(lowered, quick)
+        return compile_(lowered, quick, salt)
 
     monkeypatch.setattr(compile_cache, "_xla_compile", counted)
     return calls

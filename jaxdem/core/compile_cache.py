@@ -20,8 +20,9 @@ callbacks (the SciPy fallback of the sparse solve, the sensitivities' host solve
 be stored, and are not; nor is a program
 that JAX itself loaded from its cache rather than compiled (such an executable
 serialises without its kernels, and the copy fails when called: "Function ...
-not found"), so a program compiled before this store existed is stored the
-next time it is compiled afresh.
+not found"). So that JAX's cache does not serve a stored program under its
+lowered text (the same text after a change of the jaxdem source elsewhere), each
+is compiled with an option that changes no code and names its key (:func:`_salt`).
 
 Compilation beside other work: XLA compiles without Python's interpreter lock.
 :func:`prefetch` traces a program on the caller's thread and compiles it on a
@@ -41,6 +42,7 @@ import functools
 import hashlib
 import os
 import pickle
+import random
 import tempfile
 import threading
 import time
@@ -93,9 +95,12 @@ def _options(quick: bool = False) -> dict:
     return {**CPU_COMPILER_OPTIONS, **(QUICK_COMPILER_OPTIONS if quick else {})}
 
 
-def _xla_compile(lowered, quick: bool = False):
-    """``lowered.compile()``, with :data:`CPU_COMPILER_OPTIONS` (and the quick ones) on a CPU."""
+def _xla_compile(lowered, quick: bool = False, salt: int | None = None):
+    """``lowered.compile()``, with :data:`CPU_COMPILER_OPTIONS` (and the quick ones) on a CPU;
+    ``salt`` (a stored program's, :func:`_salt`) among the options."""
     options = _options(quick)
+    if salt is not None:
+        options = {**options, _SALT_OPTION: salt}
     if options:
         try:
             return lowered.compile(compiler_options=options)
@@ -126,12 +131,14 @@ STORED_BYTES = 256 * 2**20
 """Most bytes of stored programs kept on disk (least recently written dropped first):
 every change of the jaxdem source makes new keys."""
 
-_JAX_CACHE_HITS = [0]
+_JAX_CACHE_HITS: collections.Counter = collections.Counter()
+"""Hits on JAX's persistent cache, by thread: a compilation and the hit it may score run
+on one thread, while another thread compiles (and hits) other programs meanwhile."""
 
 
 def _count_jax_cache_hits(event: str, **_) -> None:
     if event == "/jax/compilation_cache/cache_hits":
-        _JAX_CACHE_HITS[0] += 1
+        _JAX_CACHE_HITS[threading.get_ident()] += 1
 
 
 jax.monitoring.register_event_listener(_count_jax_cache_hits)
@@ -178,6 +185,25 @@ def _disk_key(name, tree, leaves, static, options) -> str:
              tuple((tuple(x.shape), str(x.dtype)) for x in leaves),
              tuple(sorted(static.items())), tuple(sorted(options.items())))
     return hashlib.sha256(repr(parts).encode()).hexdigest()
+
+
+_SALT_OPTION = "xla_debug_buffer_assignment_show_max"
+"""An XLA option that changes no code (how many buffers a debugging printout of the
+buffer assignment lists) but enters JAX's cache key: see :func:`_salt`."""
+
+
+def _salt(path: Path) -> int:
+    """The value of :data:`_SALT_OPTION` with which the program stored at ``path`` is compiled.
+
+    Made of the program's key, so that JAX's persistent cache never holds it under the key
+    of another program that lowers to the same text: a program that JAX loads from its
+    cache serialises without its kernels (module docstring), so a JAX hit could not be
+    stored. Without the salt the text of a program stays the same when the jaxdem source
+    changes where the program does not, and every run after such a change found its
+    program in JAX's cache, not in ``programs/``, and traced and lowered it again
+    (1.6-2.2 s of a 3-6 s warm run).
+    """
+    return 16 + int(path.stem[:12], 16) % 2**40
 
 
 def _load_program(path: Path):
@@ -260,11 +286,16 @@ def _lower(fn, args, static, quick, leaves, tree):
     def finish():
         _start_host_tasks()
         t2 = time.perf_counter()
-        hits = _JAX_CACHE_HITS[0]
-        compiled = _xla_compile(lowered, quick)
-        # A hit on JAX's cache meanwhile (here or on another thread) may have been
-        # this program's: such a program is not stored (see the module's docstring).
-        if path is not None and _JAX_CACHE_HITS[0] == hits:
+        me = threading.get_ident()
+        hits = _JAX_CACHE_HITS[me]
+        compiled = _xla_compile(lowered, quick, None if path is None else _salt(path))
+        if path is not None and _JAX_CACHE_HITS[me] > hits:
+            # JAX's cache had it (stored here once and since dropped from ``programs/``,
+            # or never stored: see the module's docstring). Such an executable cannot be
+            # stored: compile it afresh, once, under a salt JAX has never seen.
+            hits = _JAX_CACHE_HITS[me]
+            compiled = _xla_compile(lowered, quick, 1 + _salt(path) + random.getrandbits(40))
+        if path is not None and _JAX_CACHE_HITS[me] == hits:
             _store_program(path, compiled)
         _count(0.0, time.perf_counter() - t2)
         return compiled
