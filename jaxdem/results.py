@@ -47,7 +47,10 @@ class Result:
         cells (``mesh_size``) also ``strain`` [exx, eyy, gxy] (extension
         positive, from the same reference as ``u``).
       contacts: counts of contact springs in contact: ``total``, ``open``, ``slipping``.
-      bolts: one dict per bolt (empty in explicit-block scenes).
+      bolts: one dict per scene bolt: ``id``, ``force`` (kN), ``force_per_m`` (kN/m),
+        ``state`` (``elastic``, ``yielded``, ``pulled out``, ``slack``, ``yielded in
+        compression``, or ``not installed``: its stage never ran, force 0),
+        ``compression_capacity`` (kN).
       stages: per stage ``name``, ``converged``, ``stable``, ``iterations`` (Newton
         iterations per increment), ``substeps`` (geometry updates per increment),
         ``residual`` (final relative residual per increment), ``imbalance``
@@ -291,6 +294,14 @@ def block_stress(n_blocks, area, centroid, snap) -> np.ndarray:
 _BOLT_STATES = {0: "elastic", 1: "yielded", 2: "pulled out", 3: "slack",
                 4: "yielded in compression"}
 
+NOT_INSTALLED = "not installed"
+"""The state of a bolt whose stage never ran (the analysis stopped before it): it
+carries nothing, and is reported with force 0."""
+
+BOLT_STATE_CODES = {**{name: code for code, name in _BOLT_STATES.items()}, NOT_INSTALLED: -1}
+"""Integer code of each bolt state (the solver's, and -1 for ``not installed``), as the VTK
+files write it."""
+
 
 # A scene bolt split into sub-bolts (an anchor on a shared face) reports the state of
 # its most advanced part, in this order.
@@ -305,18 +316,28 @@ def _by_scene_bolt(layout, n: int) -> list[np.ndarray]:
     return [np.nonzero(of == i)[0] for i in range(int(of.max(initial=-1)) + 1)]
 
 
-def scene_bolts(scene, layout, state) -> list[dict[str, Any]]:
+def scene_bolts(scene, layout, state, active=None) -> list[dict[str, Any]]:
     """result.json's ``bolts``: per scene bolt, its force (kN, per bolt; ``force_per_m``
     per metre of tunnel: divided by the spacing), its state, and its compression
-    capacity (kN; 0: it carries tension only, like a cable)."""
+    capacity (kN; 0: it carries tension only, like a cable).
+
+    ``active``: the driver's (B,) mask of the solver bolts installed so far
+    (``_Driver.bolt_active``, the ``Loads.bolt_active`` of the increments); a bolt none
+    of whose parts is installed (its stage never ran) is :data:`NOT_INSTALLED`, force 0.
+    None: every bolt installed."""
     force = np.asarray(state.bolt_force)
     st = np.asarray(state.bolt_state)
+    installed = np.ones(len(force), bool) if active is None else np.asarray(active, bool)
     out = []
     for i, subs in enumerate(_by_scene_bolt(layout, len(force))):
+        comp = scene.bolts[i].compression if i < len(scene.bolts) else 0.0
+        if not installed[subs].any():
+            out.append({"id": i, "force": 0.0, "force_per_m": 0.0, "state": NOT_INSTALLED,
+                        "compression_capacity": comp})
+            continue
         per_m = float(np.sum(force[subs]))
         worst = max((int(x) for x in st[subs]), key=_BOLT_STATE_RANK.index, default=0)
         spacing = float(layout.bolt_spacing[subs[0]])
-        comp = scene.bolts[i].compression if i < len(scene.bolts) else 0.0
         out.append({"id": i, "force": per_m * spacing, "force_per_m": per_m,
                     "state": _BOLT_STATES[worst], "compression_capacity": comp})
     return out
@@ -384,10 +405,12 @@ def initial_contacts(snap: dict, act: np.ndarray, ref: Any) -> dict[str, np.ndar
             "initial_fn": np.array([f[1] for f in found], float).reshape(n)}
 
 
-def build_result(scene, model, layout, state, ref, info, records, history, timing) -> Result:
+def build_result(scene, model, layout, state, ref, info, records, history, timing,
+                 bolt_active=None) -> Result:
     """Assemble the host Result from the final state and the increment records.
 
-    ``ref`` is the state displacements are measured from (None: the start).
+    ``ref`` is the state displacements are measured from (None: the start);
+    ``bolt_active`` the driver's mask of installed bolts (:func:`scene_bolts`).
     """
     nr = layout.n_rock
     snap = {k: np.asarray(v) for k, v in info["snapshot"].items()}
@@ -459,7 +482,7 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
             **({"released": {e: [r["released"][e] for r in recs] for e in recs[0]["released"]}}
                if "released" in recs[0] else {}),
         })
-    bolts = scene_bolts(scene, layout, state)
+    bolts = scene_bolts(scene, layout, state, bolt_active)
     imbalance_tol = IMBALANCE_FACTOR * float(model.tol)
 
     admissibility = {

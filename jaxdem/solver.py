@@ -76,7 +76,7 @@ def solve(scene, set: dict | None = None, progress=None):
     d = run(scene, model, state, layout, scene_data(scene, layout), progress)
     timing = dict(build_s=build_s, compile_s=d.compile_s, solve_s=d.solve_s)
     return build_result(scene, d.model, layout, d.state, d.ref, d.info, d.records, d.history,
-                        timing)
+                        timing, bolt_active=d.bolt_active)
 
 
 def run(scene, model: Model, state: State, layout, data: Data, progress=None,
