@@ -57,7 +57,9 @@ def solve(scene, set: dict | None = None, progress=None):
       set: parameter overrides by dotted path, e.g. ``{"joints.set1.kn": 2e6}``.
       progress: optional callable, called after each increment with a dict
         (``stage``, ``step``, ``n_steps``, ``status``, ``iterations``,
-        ``substeps``, ``residual``).
+        ``substeps``, ``residual``, ``stage_index``: 0 for the initial state (the
+        "loading" or in-situ "initial" record), k for the k-th stage (the file's
+        ``stage = k``), ``n_stages``: how many stages follow the initial state).
     Returns:
       a :class:`jaxdem.results.Result`.
 
@@ -102,6 +104,9 @@ def run(scene, model: Model, state: State, layout, data: Data, progress=None,
         if data.p == 0:
             driver.start_compiling(data.weight + data.traction)
     d = driver
+    # Where the progress events are: 0 the initial state (loading or in-situ), k the
+    # k-th stage of the plan (the file's ``stage = k``), of ``n_stages``.
+    d.stage_index, d.n_stages = 0, len(plan)
     in_situ = scene.in_situ
     N, D = model.n_blocks, model.ndof
     zero = np.zeros((1 + data.p, N, D))
@@ -139,9 +144,10 @@ def run(scene, model: Model, state: State, layout, data: Data, progress=None,
     # from ``Excavation.held``).
     releasing: list[dict] = []
     relaxed = any(len(e.release) > 1 for e in scene.excavations)
-    for stage in plan:
+    for index, stage in enumerate(plan, 1):
         if d.status != Status.CONVERGED:
             break
+        d.stage_index = index
         removed = np.zeros(N, bool)
         removed[:layout.n_rock] = [e is not None and e in stage["excavations"]
                                    for e in layout.excavation]
@@ -322,6 +328,7 @@ class _Driver:
         self.dref = None
         self.status = Status.CONVERGED
         self.bolt_active = np.zeros(model.n_bolts, bool)
+        self.stage_index = self.n_stages = 0  # set by run(): see its progress events
         self.water_y = data.water_y
         self.approximate = False
         self.quick = quick  # programs compiled quick (compile_cache.QUICK_COMPILER_OPTIONS)
@@ -389,7 +396,8 @@ class _Driver:
         if self.progress is not None:
             self.progress(dict(stage=stage, step=k, n_steps=n, status=self.status.label,
                                iterations=rec["iterations"], substeps=rec["substeps"],
-                               residual=rec["residual"]))
+                               residual=rec["residual"], stage_index=self.stage_index,
+                               n_stages=self.n_stages))
         return self.status == Status.CONVERGED
 
     def release(self, removed):

@@ -30,11 +30,12 @@ def scene_name(scene: Any, path: Path, overrides: dict[str, Any] | None = None) 
 
 
 def stage_count(scene: Any) -> int:
-    """Stages the solver reports progress for: the loading or initial state, then the
-    stages it runs (``[[stages]]``, or the one it makes for excavations and supports)."""
+    """Stages the progress line numbers: the stages run after the initial state
+    (``[[stages]]``, or the one the solver makes for excavations and supports); the
+    initial state (loading or in-situ) is named, not counted."""
     from jaxdem.solver import stage_plan
 
-    return 1 + len(stage_plan(scene))
+    return len(stage_plan(scene))
 
 
 def scene_summary(scene: Any) -> str:
