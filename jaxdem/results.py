@@ -75,8 +75,9 @@ class Result:
         ``converged`` requires all three within their tolerances; otherwise
         ``status`` names the one that failed (``overlap``, ``law_violation``,
         ``imbalance``).
-      warnings: sentences for the engineer to review, e.g. a joint slip in one
-        increment larger than ``LARGE_SLIP`` (5%) of the block's size.
+      warnings: sentences for the engineer to review: the scene's plausibility
+        warnings (a value most likely in the wrong unit, ``Scene.warnings``), then e.g.
+        a joint slip in one increment larger than ``LARGE_SLIP`` (5%) of the block's size.
       geometry: plotting data, not written to JSON: ``initial_vertices`` and
         ``final_vertices`` (lists of (n_i, 2) arrays, m), ``fixed`` (bool per
         block), ``walls`` (list of (2, 2) segments), ``contacts`` with ``points``
@@ -495,7 +496,7 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
         admissibility["overlap_rel"] <= OVERLAP_TOL
         and admissibility["strength_excess"] <= STRENGTH_TOL
         and admissibility["imbalance"] <= imbalance_tol)
-    warnings = []
+    warnings = list(getattr(scene, "warnings", ()))  # plausibility: a value in the wrong unit?
     big = [r for r in records if r.get("slip_rel", 0.0) > LARGE_SLIP]
     if big:
         r = max(big, key=lambda r: r["slip"])
