@@ -86,7 +86,9 @@ class Result:
         ``stress`` (n, 3) block stresses sxx, syy, sxy (kPa, compression
         positive), ``centroids`` (n, 2) current centroids (m), ``excavated``
         (n,) bool, ``bolts`` (list of (2, 2) current anchor positions, m, in
-        the order of ``bolts``).
+        the order of ``bolts``); from :func:`jaxdem.solve`, also ``stages``: the state at
+        the end of each stage, in the order of ``stages`` (the last one where the
+        analysis stopped), each a :func:`stage_frame`.
       history: per increment: ``stage``, ``step``, ``load_factor`` and
         ``monitors`` (name -> scalar: |u| for a point, convergence for a section).
     """
@@ -404,6 +406,43 @@ def initial_contacts(snap: dict, act: np.ndarray, ref: Any) -> dict[str, np.ndar
     found = [known.get((int(a[k]), int(b[k]), int(vertex[k])), (-1, np.nan)) for k in idx]
     return {"initial_state": np.array([f[0] for f in found], np.int32).reshape(n),
             "initial_fn": np.array([f[1] for f in found], float).reshape(n)}
+
+
+def stage_frame(scene, model, layout, state, ref, info, bolt_active, name: str, index: int,
+                increments: int) -> dict[str, Any]:
+    """Host copies of the state at the end of a stage (or where the analysis stopped in it),
+    for files that step through the stages (:func:`jaxdem.vtk.write_vtk`'s ``.pvd``).
+
+    Returns ``name`` (the stage's record name in ``Result.stages``), ``index`` (0 the
+    initial state, k the k-th stage), ``increments`` (increments run so far), and as
+    ``Result.blocks`` and ``Result.geometry`` read them: ``final_vertices``, ``u`` (n, 3)
+    m, m, rad from ``ref``, ``stress`` (n, 3) kPa compression positive, ``fixed``,
+    ``excavated``, ``contacts`` (``points``, ``normals``, ``state``, ``fn``, ``fs`` of the
+    contact springs in contact), ``bolts`` (anchors, :func:`bolt_anchors`) and
+    ``bolt_records`` (:func:`scene_bolts`).
+    """
+    nr = layout.n_rock
+    snap = {k: np.asarray(v) for k, v in info["snapshot"].items()}
+    u, rot = np.asarray(state.u)[:nr], np.asarray(state.rot)[:nr]
+    if ref is not None:
+        u, rot = u - np.asarray(ref.u)[:nr], rot - np.asarray(ref.rot)[:nr]
+    if model.ndof == 6:
+        stress = -np.asarray(state.stress)[:nr]
+    else:
+        stress = block_stress(nr, np.asarray(model.area), np.asarray(state.centroid), snap)
+    verts, nv = np.asarray(state.verts), np.asarray(model.nv)
+    act = snap["active"]
+    return {
+        "name": name, "index": index, "increments": increments,
+        "final_vertices": [verts[i, : nv[i]] for i in range(nr)],
+        "u": np.column_stack([u[:, :2], rot]), "stress": stress,
+        "fixed": ~np.asarray(model.free)[:nr], "excavated": ~np.asarray(state.alive)[:nr],
+        "contacts": {k: snap[key][act] for k, key in (("points", "point"), ("normals", "normal"),
+                                                      ("state", "state"), ("fn", "fn"),
+                                                      ("fs", "fs"))},
+        "bolts": bolt_anchors(model, state, layout),
+        "bolt_records": scene_bolts(scene, layout, state, bolt_active),
+    }
 
 
 def build_result(scene, model, layout, state, ref, info, records, history, timing,

@@ -33,7 +33,7 @@ from jaxdem.core.loads import in_situ_preload, make_loads, release_forces_jit
 from jaxdem.core.sensitivities import STATE_FLOATS, preload_tangent, release_with_tangent
 from jaxdem.core.state import Loads, Model, State, grow_capacity
 from jaxdem.core.status import Status, global_imbalance
-from jaxdem.results import build_result, monitor_values
+from jaxdem.results import build_result, monitor_values, stage_frame
 
 __all__ = ["COMPILE_TIMES", "Data", "Status", "gravity_material", "increment_count", "run",
            "run_increment", "scene_data", "solve"]
@@ -75,10 +75,22 @@ def solve(scene, set: dict | None = None, progress=None):
     model, state, layout = model_mod.build(scene)
     jax.block_until_ready(state.verts)
     build_s = time.perf_counter() - t0
-    d = run(scene, model, state, layout, scene_data(scene, layout), progress)
+    frames = []
+
+    def frame(d, name=None):
+        # Host copies of the state at the end of each stage (Result.geometry["stages"]).
+        frames.append(stage_frame(scene, d.model, layout, d.state, d.ref, d.info,
+                                  d.bolt_active.copy(), d.records[-1]["stage"], d.stage_index,
+                                  len(d.records)))
+
+    d = run(scene, model, state, layout, scene_data(scene, layout), progress, stage_end=frame)
+    if not frames or frames[-1]["increments"] != len(d.records):  # stopped inside a stage
+        frame(d)
     timing = dict(build_s=build_s, compile_s=d.compile_s, solve_s=d.solve_s)
-    return build_result(scene, d.model, layout, d.state, d.ref, d.info, d.records, d.history,
-                        timing, bolt_active=d.bolt_active)
+    result = build_result(scene, d.model, layout, d.state, d.ref, d.info, d.records, d.history,
+                          timing, bolt_active=d.bolt_active)
+    result.geometry["stages"] = frames
+    return result
 
 
 def run(scene, model: Model, state: State, layout, data: Data, progress=None,
