@@ -47,7 +47,10 @@ class Result:
         cells (``mesh_size``) also ``strain`` [exx, eyy, gxy] (extension
         positive, from the same reference as ``u``).
       contacts: counts of contact springs in contact: ``total``, ``open``, ``slipping``.
-      bolts: one dict per bolt (empty in explicit-block scenes).
+      bolts: one dict per scene bolt: ``id``, ``force`` (kN), ``force_per_m`` (kN/m),
+        ``state`` (``elastic``, ``yielded``, ``pulled out``, ``slack``, ``yielded in
+        compression``, or ``not installed``: its stage never ran, force 0),
+        ``compression_capacity`` (kN).
       stages: per stage ``name``, ``converged``, ``stable``, ``iterations`` (Newton
         iterations per increment), ``substeps`` (geometry updates per increment),
         ``residual`` (final relative residual per increment), ``imbalance``
@@ -72,8 +75,9 @@ class Result:
         ``converged`` requires all three within their tolerances; otherwise
         ``status`` names the one that failed (``overlap``, ``law_violation``,
         ``imbalance``).
-      warnings: sentences for the engineer to review, e.g. a joint slip in one
-        increment larger than ``LARGE_SLIP`` (5%) of the block's size.
+      warnings: sentences for the engineer to review: the scene's plausibility
+        warnings (a value most likely in the wrong unit, ``Scene.warnings``), then e.g.
+        a joint slip in one increment larger than ``LARGE_SLIP`` (5%) of the block's size.
       geometry: plotting data, not written to JSON: ``initial_vertices`` and
         ``final_vertices`` (lists of (n_i, 2) arrays, m), ``fixed`` (bool per
         block), ``walls`` (list of (2, 2) segments), ``contacts`` with ``points``
@@ -82,7 +86,9 @@ class Result:
         ``stress`` (n, 3) block stresses sxx, syy, sxy (kPa, compression
         positive), ``centroids`` (n, 2) current centroids (m), ``excavated``
         (n,) bool, ``bolts`` (list of (2, 2) current anchor positions, m, in
-        the order of ``bolts``).
+        the order of ``bolts``); from :func:`jaxdem.solve`, also ``stages``: the state at
+        the end of each stage, in the order of ``stages`` (the last one where the
+        analysis stopped), each a :func:`stage_frame`.
       history: per increment: ``stage``, ``step``, ``load_factor`` and
         ``monitors`` (name -> scalar: |u| for a point, convergence for a section).
     """
@@ -291,6 +297,14 @@ def block_stress(n_blocks, area, centroid, snap) -> np.ndarray:
 _BOLT_STATES = {0: "elastic", 1: "yielded", 2: "pulled out", 3: "slack",
                 4: "yielded in compression"}
 
+NOT_INSTALLED = "not installed"
+"""The state of a bolt whose stage never ran (the analysis stopped before it): it
+carries nothing, and is reported with force 0."""
+
+BOLT_STATE_CODES = {**{name: code for code, name in _BOLT_STATES.items()}, NOT_INSTALLED: -1}
+"""Integer code of each bolt state (the solver's, and -1 for ``not installed``), as the VTK
+files write it."""
+
 
 # A scene bolt split into sub-bolts (an anchor on a shared face) reports the state of
 # its most advanced part, in this order.
@@ -305,18 +319,28 @@ def _by_scene_bolt(layout, n: int) -> list[np.ndarray]:
     return [np.nonzero(of == i)[0] for i in range(int(of.max(initial=-1)) + 1)]
 
 
-def scene_bolts(scene, layout, state) -> list[dict[str, Any]]:
+def scene_bolts(scene, layout, state, active=None) -> list[dict[str, Any]]:
     """result.json's ``bolts``: per scene bolt, its force (kN, per bolt; ``force_per_m``
     per metre of tunnel: divided by the spacing), its state, and its compression
-    capacity (kN; 0: it carries tension only, like a cable)."""
+    capacity (kN; 0: it carries tension only, like a cable).
+
+    ``active``: the driver's (B,) mask of the solver bolts installed so far
+    (``_Driver.bolt_active``, the ``Loads.bolt_active`` of the increments); a bolt none
+    of whose parts is installed (its stage never ran) is :data:`NOT_INSTALLED`, force 0.
+    None: every bolt installed."""
     force = np.asarray(state.bolt_force)
     st = np.asarray(state.bolt_state)
+    installed = np.ones(len(force), bool) if active is None else np.asarray(active, bool)
     out = []
     for i, subs in enumerate(_by_scene_bolt(layout, len(force))):
+        comp = scene.bolts[i].compression if i < len(scene.bolts) else 0.0
+        if not installed[subs].any():
+            out.append({"id": i, "force": 0.0, "force_per_m": 0.0, "state": NOT_INSTALLED,
+                        "compression_capacity": comp})
+            continue
         per_m = float(np.sum(force[subs]))
         worst = max((int(x) for x in st[subs]), key=_BOLT_STATE_RANK.index, default=0)
         spacing = float(layout.bolt_spacing[subs[0]])
-        comp = scene.bolts[i].compression if i < len(scene.bolts) else 0.0
         out.append({"id": i, "force": per_m * spacing, "force_per_m": per_m,
                     "state": _BOLT_STATES[worst], "compression_capacity": comp})
     return out
@@ -384,10 +408,49 @@ def initial_contacts(snap: dict, act: np.ndarray, ref: Any) -> dict[str, np.ndar
             "initial_fn": np.array([f[1] for f in found], float).reshape(n)}
 
 
-def build_result(scene, model, layout, state, ref, info, records, history, timing) -> Result:
+def stage_frame(scene, model, layout, state, ref, info, bolt_active, name: str, index: int,
+                increments: int) -> dict[str, Any]:
+    """Host copies of the state at the end of a stage (or where the analysis stopped in it),
+    for files that step through the stages (:func:`jaxdem.vtk.write_vtk`'s ``.pvd``).
+
+    Returns ``name`` (the stage's record name in ``Result.stages``), ``index`` (0 the
+    initial state, k the k-th stage), ``increments`` (increments run so far), and as
+    ``Result.blocks`` and ``Result.geometry`` read them: ``final_vertices``, ``u`` (n, 3)
+    m, m, rad from ``ref``, ``stress`` (n, 3) kPa compression positive, ``fixed``,
+    ``excavated``, ``contacts`` (``points``, ``normals``, ``state``, ``fn``, ``fs`` of the
+    contact springs in contact), ``bolts`` (anchors, :func:`bolt_anchors`) and
+    ``bolt_records`` (:func:`scene_bolts`).
+    """
+    nr = layout.n_rock
+    snap = {k: np.asarray(v) for k, v in info["snapshot"].items()}
+    u, rot = np.asarray(state.u)[:nr], np.asarray(state.rot)[:nr]
+    if ref is not None:
+        u, rot = u - np.asarray(ref.u)[:nr], rot - np.asarray(ref.rot)[:nr]
+    if model.ndof == 6:
+        stress = -np.asarray(state.stress)[:nr]
+    else:
+        stress = block_stress(nr, np.asarray(model.area), np.asarray(state.centroid), snap)
+    verts, nv = np.asarray(state.verts), np.asarray(model.nv)
+    act = snap["active"]
+    return {
+        "name": name, "index": index, "increments": increments,
+        "final_vertices": [verts[i, : nv[i]] for i in range(nr)],
+        "u": np.column_stack([u[:, :2], rot]), "stress": stress,
+        "fixed": ~np.asarray(model.free)[:nr], "excavated": ~np.asarray(state.alive)[:nr],
+        "contacts": {k: snap[key][act] for k, key in (("points", "point"), ("normals", "normal"),
+                                                      ("state", "state"), ("fn", "fn"),
+                                                      ("fs", "fs"))},
+        "bolts": bolt_anchors(model, state, layout),
+        "bolt_records": scene_bolts(scene, layout, state, bolt_active),
+    }
+
+
+def build_result(scene, model, layout, state, ref, info, records, history, timing,
+                 bolt_active=None) -> Result:
     """Assemble the host Result from the final state and the increment records.
 
-    ``ref`` is the state displacements are measured from (None: the start).
+    ``ref`` is the state displacements are measured from (None: the start);
+    ``bolt_active`` the driver's mask of installed bolts (:func:`scene_bolts`).
     """
     nr = layout.n_rock
     snap = {k: np.asarray(v) for k, v in info["snapshot"].items()}
@@ -459,7 +522,7 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
             **({"released": {e: [r["released"][e] for r in recs] for e in recs[0]["released"]}}
                if "released" in recs[0] else {}),
         })
-    bolts = scene_bolts(scene, layout, state)
+    bolts = scene_bolts(scene, layout, state, bolt_active)
     imbalance_tol = IMBALANCE_FACTOR * float(model.tol)
 
     admissibility = {
@@ -472,7 +535,7 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
         admissibility["overlap_rel"] <= OVERLAP_TOL
         and admissibility["strength_excess"] <= STRENGTH_TOL
         and admissibility["imbalance"] <= imbalance_tol)
-    warnings = []
+    warnings = list(getattr(scene, "warnings", ()))  # plausibility: a value in the wrong unit?
     big = [r for r in records if r.get("slip_rel", 0.0) > LARGE_SLIP]
     if big:
         r = max(big, key=lambda r: r["slip"])

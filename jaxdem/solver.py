@@ -33,7 +33,7 @@ from jaxdem.core.loads import in_situ_preload, make_loads, release_forces_jit
 from jaxdem.core.sensitivities import STATE_FLOATS, preload_tangent, release_with_tangent
 from jaxdem.core.state import Loads, Model, State, grow_capacity
 from jaxdem.core.status import Status, global_imbalance
-from jaxdem.results import build_result, monitor_values
+from jaxdem.results import build_result, monitor_values, stage_frame
 
 __all__ = ["COMPILE_TIMES", "Data", "Status", "gravity_material", "increment_count", "run",
            "run_increment", "scene_data", "solve"]
@@ -57,7 +57,9 @@ def solve(scene, set: dict | None = None, progress=None):
       set: parameter overrides by dotted path, e.g. ``{"joints.set1.kn": 2e6}``.
       progress: optional callable, called after each increment with a dict
         (``stage``, ``step``, ``n_steps``, ``status``, ``iterations``,
-        ``substeps``, ``residual``).
+        ``substeps``, ``residual``, ``stage_index``: 0 for the initial state (the
+        "loading" or in-situ "initial" record), k for the k-th stage (the file's
+        ``stage = k``), ``n_stages``: how many stages follow the initial state).
     Returns:
       a :class:`jaxdem.results.Result`.
 
@@ -73,10 +75,22 @@ def solve(scene, set: dict | None = None, progress=None):
     model, state, layout = model_mod.build(scene)
     jax.block_until_ready(state.verts)
     build_s = time.perf_counter() - t0
-    d = run(scene, model, state, layout, scene_data(scene, layout), progress)
+    frames = []
+
+    def frame(d, name=None):
+        # Host copies of the state at the end of each stage (Result.geometry["stages"]).
+        frames.append(stage_frame(scene, d.model, layout, d.state, d.ref, d.info,
+                                  d.bolt_active.copy(), d.records[-1]["stage"], d.stage_index,
+                                  len(d.records)))
+
+    d = run(scene, model, state, layout, scene_data(scene, layout), progress, stage_end=frame)
+    if not frames or frames[-1]["increments"] != len(d.records):  # stopped inside a stage
+        frame(d)
     timing = dict(build_s=build_s, compile_s=d.compile_s, solve_s=d.solve_s)
-    return build_result(scene, d.model, layout, d.state, d.ref, d.info, d.records, d.history,
-                        timing)
+    result = build_result(scene, d.model, layout, d.state, d.ref, d.info, d.records, d.history,
+                          timing, bolt_active=d.bolt_active)
+    result.geometry["stages"] = frames
+    return result
 
 
 def run(scene, model: Model, state: State, layout, data: Data, progress=None,
@@ -102,6 +116,9 @@ def run(scene, model: Model, state: State, layout, data: Data, progress=None,
         if data.p == 0:
             driver.start_compiling(data.weight + data.traction)
     d = driver
+    # Where the progress events are: 0 the initial state (loading or in-situ), k the
+    # k-th stage of the plan (the file's ``stage = k``), of ``n_stages``.
+    d.stage_index, d.n_stages = 0, len(plan)
     in_situ = scene.in_situ
     N, D = model.n_blocks, model.ndof
     zero = np.zeros((1 + data.p, N, D))
@@ -139,9 +156,10 @@ def run(scene, model: Model, state: State, layout, data: Data, progress=None,
     # from ``Excavation.held``).
     releasing: list[dict] = []
     relaxed = any(len(e.release) > 1 for e in scene.excavations)
-    for stage in plan:
+    for index, stage in enumerate(plan, 1):
         if d.status != Status.CONVERGED:
             break
+        d.stage_index = index
         removed = np.zeros(N, bool)
         removed[:layout.n_rock] = [e is not None and e in stage["excavations"]
                                    for e in layout.excavation]
@@ -322,6 +340,7 @@ class _Driver:
         self.dref = None
         self.status = Status.CONVERGED
         self.bolt_active = np.zeros(model.n_bolts, bool)
+        self.stage_index = self.n_stages = 0  # set by run(): see its progress events
         self.water_y = data.water_y
         self.approximate = False
         self.quick = quick  # programs compiled quick (compile_cache.QUICK_COMPILER_OPTIONS)
@@ -389,7 +408,8 @@ class _Driver:
         if self.progress is not None:
             self.progress(dict(stage=stage, step=k, n_steps=n, status=self.status.label,
                                iterations=rec["iterations"], substeps=rec["substeps"],
-                               residual=rec["residual"]))
+                               residual=rec["residual"], stage_index=self.stage_index,
+                               n_stages=self.n_stages))
         return self.status == Status.CONVERGED
 
     def release(self, removed):

@@ -445,14 +445,15 @@ def test_stage_counter_counts_the_stages_the_solver_reports():
     from jaxdem.cli._summaries import stage_count
     from jaxdem.scene import load_scene
 
-    # The demo: the in-situ state, then one excavation stage ("1/2, 2/2", not "3/3").
-    assert stage_count(load_scene("jaxdem/data/demo.toml")) == 2
-    # Two [[stages]] after the in-situ state.
-    assert stage_count(load_scene("examples/staged_tunnel.toml")) == 3
-    bar = ProgressBar(n_stages=3, stream=_Stream(False), width=10)
-    seen = [bar.format(_event(stage, 1)).split(" [")[0]
-            for stage in ("initial", "heading", "bench")]
-    assert seen == ["stage 1/3 initial", "stage 2/3 heading", "stage 3/3 bench"]
+    # The demo: the in-situ state, then one excavation stage, "stage 1/1" (the initial
+    # state is named, not counted).
+    assert stage_count(load_scene("jaxdem/data/demo.toml")) == 1
+    # Two [[stages]] after the in-situ state: stage = 2 in the file is "stage 2/2".
+    assert stage_count(load_scene("examples/staged_tunnel.toml")) == 2
+    bar = ProgressBar(n_stages=2, stream=_Stream(False), width=10)
+    seen = [bar.format(dict(_event(stage, 1), stage_index=k, n_stages=2)).split(" [")[0]
+            for k, stage in enumerate(("initial", "heading", "bench"))]
+    assert seen == ["initial state (in-situ)", "stage 1/2 heading", "stage 2/2 bench"]
 
 
 def test_set_is_shown_with_the_scene_name(fake_solver, scene_file, tmp_path, capsys):

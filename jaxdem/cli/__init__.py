@@ -35,8 +35,9 @@ than a proven mechanism; it writes ``fos.json`` and its figures in both cases.
 ``grc`` exits 0 when every level of the curve converged or found a mechanism, 3 when
 a level did neither; it writes ``grc.json`` and ``grc.png`` in both cases.
 
-``--vtk`` (run, demo) also writes ``blocks.vtk`` and ``contacts.vtk`` (legacy VTK,
-ASCII) for ParaView; ``jaxdem --version`` prints the version.
+``--vtk`` (run, demo) also writes ``blocks.vtk``, ``contacts.vtk`` and ``bolts.vtk``
+(legacy VTK, ASCII) of the final state, and every stage's files with ``.pvd``
+collections (:mod:`jaxdem.vtk`), for ParaView; ``jaxdem --version`` prints the version.
 
 JAX, the solver and matplotlib are imported inside the commands, so that
 ``jaxdem --help`` answers at once. A command first makes the process-wide settings of

@@ -363,10 +363,16 @@ def _solve_and_report(path: Path, out: Path, overrides: dict[str, Any],
 
 
 def _load(path: Path, overrides: dict[str, Any]) -> Any:
-    """Load and validate a scene; every problem (unreadable file included) is a SceneError."""
+    """Load and validate a scene; every problem (unreadable file included) is a SceneError.
+
+    Its plausibility warnings (values most likely in the wrong unit) are printed on
+    stderr, ``warning: materials.rock.E: ...``, before anything is solved."""
     from jaxdem.scene import load_scene
 
-    return load_scene(path, set=overrides or None)
+    scene = load_scene(path, set=overrides or None)
+    for warning in getattr(scene, "warnings", ()):
+        print(f"warning: {warning}", file=sys.stderr, flush=True)
+    return scene
 
 
 def _check_out(out: Path) -> None:

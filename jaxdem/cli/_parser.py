@@ -64,7 +64,9 @@ def _add_figures_option(parser: argparse.ArgumentParser) -> None:
 def _add_vtk_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--vtk", action="store_true",
                         help="also write blocks.vtk (polygons with displacement, stress, "
-                        "state) and contacts.vtk (points with forces) for ParaView")
+                        "state), contacts.vtk (points with forces), bolts.vtk (lines with "
+                        "force and state) and every stage's files with blocks.pvd, "
+                        "contacts.pvd, bolts.pvd collections for ParaView")
 
 
 def make_parser() -> argparse.ArgumentParser:

@@ -32,16 +32,25 @@ class SampleBar(AbstractContextManager):
             self.stream.write("\n")
 
 
+# The solver's names of the initial state's increments, as the progress line shows them.
+_INITIAL_NAMES = {"initial": "in-situ", "loading": "loading"}
+
+
 class ProgressBar(AbstractContextManager):
     """Text progress over stages and load increments, on stderr.
 
     Called by the solver once per increment with a dict: ``stage`` (name),
     ``step`` (1-based), ``n_steps``, ``status``, ``iterations``, ``substeps``,
-    ``residual``. On a terminal one line is redrawn in place::
+    ``residual``, ``stage_index`` and ``n_stages``. Stages are counted as the scene file
+    counts them: ``stage = 2`` (the second ``[[stages]]``) is "stage 2/N", N the
+    number of stages; the initial state before them (the loading, or the in-situ
+    state) is named, not counted. On a terminal one line is redrawn in place::
 
+        initial state (in-situ) [##########] step 1/1  it 3  res 2.0e-12
         stage 1/2 excavate [###-------] step 3/10  it 12  res 3.1e-11
 
-    elsewhere (a log file, CI) one line is printed per increment.
+    elsewhere (a log file, CI) one line is printed per increment. An event without
+    ``stage_index`` counts each new stage name as the next stage, of ``n_stages``.
     """
 
     def __init__(self, n_stages: int = 0, stream: TextIO | None = None, width: int = 20):
@@ -63,17 +72,11 @@ class ProgressBar(AbstractContextManager):
 
     def format(self, event: dict[str, Any]) -> str:
         stage = str(event.get("stage", ""))
-        if not self._stages or self._stages[-1] != stage:
-            self._stages.append(stage)
-        index = len(self._stages)
-        total = max(self.n_stages, index)
         step = int(event.get("step", 0))
         n_steps = max(int(event.get("n_steps", 0)), 1)
         filled = min(self.width, round(self.width * step / n_steps))
         bar = "#" * filled + "-" * (self.width - filled)
-        parts = [f"stage {index}/{total}"]
-        if stage:
-            parts.append(stage)
+        parts = [self._where(stage, event)]
         parts.append(f"[{bar}] step {step}/{n_steps}")
         text = " ".join(parts)
         text += f"  it {int(event.get('iterations', 0))}"
@@ -87,6 +90,20 @@ class ProgressBar(AbstractContextManager):
         if status and status != "converged":
             text += f"  {status}"
         return text
+
+    def _where(self, stage: str, event: dict[str, Any]) -> str:
+        """'initial state (loading)', 'initial state (in-situ)' or 'stage k/N name'."""
+        if "stage_index" in event:
+            index = int(event["stage_index"])
+            total = int(event.get("n_stages", self.n_stages))
+            if index == 0:
+                return f"initial state ({_INITIAL_NAMES.get(stage, stage)})"
+        else:
+            if not self._stages or self._stages[-1] != stage:
+                self._stages.append(stage)
+            index = len(self._stages)
+            total = max(self.n_stages, index)
+        return f"stage {index}/{total}" + (f" {stage}" if stage else "")
 
     def __exit__(self, *exc: object) -> None:
         if self._open_line:

@@ -30,11 +30,12 @@ def scene_name(scene: Any, path: Path, overrides: dict[str, Any] | None = None) 
 
 
 def stage_count(scene: Any) -> int:
-    """Stages the solver reports progress for: the loading or initial state, then the
-    stages it runs (``[[stages]]``, or the one it makes for excavations and supports)."""
+    """Stages the progress line numbers: the stages run after the initial state
+    (``[[stages]]``, or the one the solver makes for excavations and supports); the
+    initial state (loading or in-situ) is named, not counted."""
     from jaxdem.solver import stage_plan
 
-    return 1 + len(stage_plan(scene))
+    return len(stage_plan(scene))
 
 
 def scene_summary(scene: Any) -> str:
@@ -78,6 +79,7 @@ def result_summary(result: Any) -> str:
         lines.append(f"stable: NO, moving blocks: {moving}{more}" if moving else "stable: NO")
     lines += [f"warning: {w}" for w in getattr(result, "warnings", None) or []]
     lines += _monitor_table(result.monitors or {})
+    lines += _bolt_summary(getattr(result, "bolts", None) or [])
     contacts = result.contacts or {}
     if contacts:
         lines.append(
@@ -92,6 +94,26 @@ def result_summary(result: Any) -> str:
         )
     )
     return "\n".join(lines)
+
+
+def _bolt_summary(bolts: list[dict[str, Any]]) -> list[str]:
+    """'bolts: 2 yielded, 1 not installed; largest force 20 kN (bolt 0)': the bolts by
+    state, and the largest force of those installed (a bolt whose stage never ran
+    carries nothing, and is not counted as an elastic bolt at 0 kN)."""
+    if not bolts:
+        return []
+    states: dict[str, int] = {}
+    for bolt in bolts:
+        state = str(bolt.get("state", ""))
+        states[state] = states.get(state, 0) + 1
+    line = "bolts: " + ", ".join(f"{n} {state}" for state, n in states.items())
+    installed = [b for b in bolts if b.get("state") != "not installed"]
+    if installed:
+        top = max(installed, key=lambda b: abs(float(b.get("force", 0.0))))
+        line += f"; largest force {float(top.get('force', 0.0)):.4g} kN (bolt {top.get('id')})"
+    if len(installed) < len(bolts):
+        line += "; not installed: the analysis stopped before their stage"
+    return [line]
 
 
 def _monitor_table(monitors: dict[str, dict[str, Any]]) -> list[str]:

@@ -494,3 +494,65 @@ def check_far(q: np.ndarray, path: str, size: float, dtype: str) -> None:
             f"({dtype} resolves it only within {limit:.3g} m of (0, 0)); shift the "
             "coordinates towards (0, 0)",
         )
+
+
+# --- plausibility warnings (valid values, most likely in the wrong unit) -----------------
+
+PLAUSIBLE_E = (1e4, 1e9)
+"""Young's modulus (kPa) of rock: below 10 MPa (softer than any rock; a weak mudstone is
+about 100 MPa = 1e5 kPa) it was most likely written in GPa or MPa; above 1,000 GPa
+(stiffer than any rock, and than steel) in Pa."""
+
+PLAUSIBLE_JOINT_STIFFNESS = (1e3, 1e9)
+"""Normal and shear stiffness (kPa/m) of rock joints: from about 1 MPa/m (shear of a
+clay-filled joint) to 1,000 GPa/m (normal stiffness of a tight joint in hard rock is
+10 to 100 GPa/m). Below, it was most likely written in MPa/m or GPa/m; above, in Pa/m."""
+
+MIN_FRICTION_DEG = 5.0
+"""A friction angle in (0, 5) deg was most likely written in radians (0.52 rad = 30 deg).
+Exactly 0 is a deliberate frictionless joint and is not warned about."""
+
+
+def plausibility_warnings(materials: dict, joints: dict) -> tuple[str, ...]:
+    """Sentences about values that are valid but most likely in the wrong unit, each
+    starting with the field's dotted path: E outside :data:`PLAUSIBLE_E`, a joint's kn or
+    ks outside :data:`PLAUSIBLE_JOINT_STIFFNESS`, a friction angle in (0,
+    :data:`MIN_FRICTION_DEG`). They do not refuse the scene (a sand-filled model or a
+    frictionless check may mean them)."""
+    out = []
+    for name, m in materials.items():
+        lo, hi = PLAUSIBLE_E
+        if m.E < lo:
+            out.append(f"materials.{name}.E: {m.E:g} kPa is below {lo:g} kPa (10 MPa), softer "
+                       "than any rock; E is in kPa: was it written in GPa or MPa? "
+                       "(20 GPa is E = 2e7)")
+        elif m.E > hi:
+            out.append(f"materials.{name}.E: {m.E:g} kPa is above {hi:g} kPa (1,000 GPa), "
+                       "stiffer than any rock; E is in kPa: was it written in Pa? "
+                       "(20 GPa is E = 2e7)")
+        out += _friction_warning(f"materials.{name}.friction_deg", m.friction_deg)
+    for name, j in joints.items():
+        for key in ("kn", "ks"):
+            out += _stiffness_warning(f"joints.{name}.{key}", getattr(j, key))
+        out += _friction_warning(f"joints.{name}.friction_deg", j.friction_deg)
+    return tuple(out)
+
+
+def _friction_warning(path: str, phi: float) -> list[str]:
+    if not 0.0 < phi < MIN_FRICTION_DEG:
+        return []
+    return [f"{path}: {phi:g} deg is below {MIN_FRICTION_DEG:g} deg; angles are in degrees: "
+            f"was it written in radians? ({phi:g} rad = {math.degrees(phi):.0f} deg; "
+            "0 means a frictionless joint)"]
+
+
+def _stiffness_warning(path: str, k: float) -> list[str]:
+    lo, hi = PLAUSIBLE_JOINT_STIFFNESS
+    if k < lo:
+        return [f"{path}: {k:g} kPa/m is below {lo:g} kPa/m (1 MPa/m), softer than any rock "
+                "joint; stiffness is in kPa/m: was it written in MPa/m or GPa/m? "
+                "(10 GPa/m is 1e7)"]
+    if k > hi:
+        return [f"{path}: {k:g} kPa/m is above {hi:g} kPa/m (1,000 GPa/m), stiffer than any "
+                "rock joint; stiffness is in kPa/m: was it written in Pa/m? (10 GPa/m is 1e7)"]
+    return []

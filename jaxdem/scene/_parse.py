@@ -26,6 +26,7 @@ from jaxdem.scene._checks import (
     check_far,
     check_overlaps,
     overlap_depth,
+    plausibility_warnings,
 )
 from jaxdem.scene._fields import (
     MAX_MAGNITUDE,
@@ -116,7 +117,8 @@ __all__ = [
 
 @dataclass(frozen=True, eq=False)
 class Scene:
-    """A validated scene. ``data`` is the raw parsed TOML (for overrides); ``source`` its origin."""
+    """A validated scene. ``data`` is the raw parsed TOML (for overrides); ``source`` its origin;
+    ``warnings`` the plausibility warnings (values most likely in the wrong unit)."""
 
     name: str
     description: str
@@ -138,6 +140,9 @@ class Scene:
     supports: tuple[Support, ...] = ()
     water: Water | None = None
     stages: tuple[Stage, ...] = ()
+    warnings: tuple[str, ...] = ()
+    """Plausibility warnings: valid values most likely in the wrong unit, each starting
+    with the field's path (:func:`jaxdem.scene._checks.plausibility_warnings`)."""
 
     def with_overrides(self, overrides: Mapping[str, float]) -> Scene:
         """A new Scene re-validated from ``data`` with numeric entries set by dotted path."""
@@ -242,6 +247,7 @@ def _parse(data: Any, source: str) -> Scene:
         supports=supports,
         water=water,
         stages=stages,
+        warnings=plausibility_warnings(materials, joints),
     )
 
 

@@ -1,0 +1,104 @@
+"""Plausibility warnings: values that are valid but most likely in the wrong unit (E in
+GPa or MPa where the file wants kPa, a friction angle in radians, a joint stiffness in
+MPa/m or Pa/m) are warned about, not refused: on stderr by the command line, in
+``Scene.warnings`` and in result.json's ``warnings``, each naming the field. The bundled
+examples give none."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from test_cli import SCENE
+
+from jaxdem.cli import main
+from jaxdem.scene import load_scene
+
+ROOT = Path(__file__).resolve().parents[1]
+BUNDLED = sorted(ROOT.glob("examples/*.toml")) + [ROOT / "jaxdem" / "data" / "demo.toml"]
+
+
+def _scene(**replace: str):
+    text = SCENE.format(E=replace.pop("E", "1e7"))
+    for line, new in replace.items():
+        assert line in text
+        text = text.replace(line, new)
+    return load_scene(text)
+
+
+def test_a_plausible_scene_has_no_warning():
+    assert _scene().warnings == ()
+
+
+@pytest.mark.parametrize("E, words", [
+    ("20", "below 10000 kPa (10 MPa), softer than any rock; E is in kPa: was it written in "
+           "GPa or MPa?"),
+    ("2e4", None),       # 20 MPa: a soft rock, plausible
+    ("2e10", "above 1e+09 kPa (1,000 GPa), stiffer than any rock; E is in kPa: was it "
+             "written in Pa?"),
+])
+def test_young_modulus_in_the_wrong_unit(E, words):
+    warnings = _scene(E=E).warnings
+    if words is None:
+        assert warnings == ()
+    else:
+        assert warnings == (f"materials.rock.E: {float(E):g} kPa is {words} "
+                            "(20 GPa is E = 2e7)",)
+
+
+@pytest.mark.parametrize("phi, warned", [(0.52, True), (4.9, True), (0.0, False), (5.0, False)])
+def test_friction_in_radians(phi, warned):
+    warnings = _scene(**{"friction_deg = 30.0": f"friction_deg = {phi}"}).warnings
+    if not warned:  # exactly 0: a deliberate frictionless joint; 5 deg and up: plausible
+        assert warnings == ()
+        return
+    (w,) = warnings
+    assert w.startswith(f"joints.j.friction_deg: {phi:g} deg is below 5 deg; ")
+    assert "was it written in radians?" in w
+    if phi == 0.52:
+        assert "0.52 rad = 30 deg" in w
+
+
+@pytest.mark.parametrize("key, value, words", [
+    ("kn", "10.0", "below 1000 kPa/m (1 MPa/m), softer than any rock joint; stiffness is in "
+                   "kPa/m: was it written in MPa/m or GPa/m?"),
+    ("ks", "5e12", "above 1e+09 kPa/m (1,000 GPa/m), stiffer than any rock joint; stiffness "
+                   "is in kPa/m: was it written in Pa/m?"),
+    ("kn", "1e3", None),  # the ends of the range are plausible
+    ("ks", "1e9", None),
+])
+def test_joint_stiffness_outside_the_range_of_rock_joints(key, value, words):
+    warnings = _scene(**{f"{key} = 1e7": f"{key} = {value}"}).warnings
+    if words is None:
+        assert warnings == ()
+    else:
+        assert warnings == (f"joints.j.{key}: {float(value):g} kPa/m is {words} "
+                            "(10 GPa/m is 1e7)",)
+
+
+def test_overrides_are_checked_too():
+    scene = _scene()
+    assert scene.with_overrides({"joints.j.friction_deg": 0.6}).warnings[0].startswith(
+        "joints.j.friction_deg: 0.6 deg")
+
+
+@pytest.mark.parametrize("path", BUNDLED, ids=lambda p: p.name)
+def test_the_bundled_examples_give_no_warning(path):
+    assert load_scene(path).warnings == ()
+
+
+def test_the_command_line_prints_them_on_stderr_and_writes_them_to_result_json(tmp_path, capsys):
+    scene = tmp_path / "block.toml"
+    scene.write_text(SCENE.format(E="5e9").replace("friction_deg = 30.0", "friction_deg = 0.5"))
+    out = tmp_path / "out"
+    assert main(["run", str(scene), "--out", str(out), "--no-figures"]) == 0
+    err = capsys.readouterr().err
+    warned = [line for line in err.splitlines() if line.startswith("warning: ")]
+    assert [w.split(":")[1].strip() for w in warned] == ["materials.rock.E",
+                                                         "joints.j.friction_deg"]
+    data = json.loads((out / "result.json").read_text())
+    assert data["warnings"][:2] == [w.removeprefix("warning: ") for w in warned]
+    # jaxdem check says so too, before drawing.
+    assert main(["check", str(scene), "--out", str(tmp_path / "check")]) == 0
+    assert capsys.readouterr().err.count("warning: ") == 2
