@@ -375,6 +375,9 @@ class _BatchDriver:
             if np.asarray(info["cell_full"])[over].any():
                 self.model = dataclasses.replace(self.model,
                                                  cell_capacity=2 * self.model.cell_capacity)
+            if np.asarray(info["slots_full"])[over].any():
+                self.model = dataclasses.replace(self.model,
+                                                 slots_per_pair=2 * self.model.slots_per_pair)
             need = int(np.asarray(info["pairs_needed"])[over].max())
             cap = self.state.capacity
             if need > cap:

@@ -27,7 +27,7 @@ from jaxdem.core.state import OPEN, STICK, Model
 
 @functools.partial(jax.tree_util.register_dataclass, meta_fields=[], data_fields=[
     "geo", "prop", "Bn", "Bs", "fs_old", "fn0", "failed", "pw", "bolt", "load", "free", "stress",
-    "Kc"])
+    "Kc", "packed"])
 @dataclasses.dataclass(frozen=True)
 class Sub:
     """Everything fixed during one geometry sub-step (a pytree that lives inside jit).
@@ -39,7 +39,11 @@ class Sub:
     ``active``. ``load``: (N, D) external load. ``free``: (N,) blocks with
     degrees of freedom (not fixed, not excavated). ``stress``: (N, 3)
     committed stress of deformable blocks (tension positive); ``Kc``: their
-    (N, 6, 6) stiffness (None for rigid blocks).
+    (N, 6, 6) stiffness (None for rigid blocks). ``packed``: None where the slots are
+    the detection's P x 2 x V, in its order; else the touching slots alone
+    (:func:`jaxdem.core._substep.pack_slots`): ``slot`` (C,) the index of each among the
+    P x 2 x V (P x 2 x V for an empty place), ``first`` and ``second`` (P,) the two blocks
+    of each candidate pair.
     """
 
     geo: dict
@@ -55,6 +59,7 @@ class Sub:
     free: jax.Array
     stress: jax.Array
     Kc: jax.Array | None
+    packed: dict | None = None
 
 
 def cell_stiffness(model: Model, free):

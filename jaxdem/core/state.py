@@ -46,7 +46,7 @@ def _pytree(data: list[str], meta: list[str]):
         "bolt_comp", "bolt_pullout", "cell_D", "bond_penalty", "verts0", "centroid0",
     ],
     meta=["n_blocks", "n_vertices", "n_big", "use_cells", "cell_capacity", "linear_solver",
-          "n_bolts", "has_water", "ndof", "lanes"],
+          "n_bolts", "has_water", "ndof", "lanes", "slots_per_pair"],
 )
 @dataclasses.dataclass(frozen=True)
 class Model:
@@ -109,6 +109,9 @@ class Model:
         accumulated (u, rot), never a sum of many small moves: in float32 a
         load step's move can be below the resolution of a coordinate.
       n_blocks, n_vertices, n_big, cell_capacity, n_bolts: static sizes.
+      slots_per_pair: places per candidate pair for the touching slots that the Newton
+        iteration works on (:func:`jaxdem.core._substep.pack_slots`); doubled, with a
+        recompilation, when a sub-step has more (2 V or more: every slot, unpacked).
       ndof: degrees of freedom per block, D: 3 (rigid: ux, uy, rotation) or 6
         (deformable, constant strain: also eps_x, eps_y, gamma_xy).
       use_cells: grid broad phase (else all pairs).
@@ -171,6 +174,7 @@ class Model:
     has_water: bool = False
     ndof: int = 3
     lanes: str | None = None
+    slots_per_pair: int = 3
 
 
 @_pytree(
