@@ -105,7 +105,8 @@ class Progress(NamedTuple):
     ``travel`` (N,) each block's travel so far; ``residual`` the last sub-step's relative
     residual; ``balance`` and ``snapshot`` those of the last sub-step
     (:func:`jaxdem.core._substep.commit_substep`); ``pairs_needed``, ``cell_full`` and
-    ``slots_full`` what the contact list needed; ``approximate`` a sub-step ended without equilibrium.
+    ``slots_full`` what the contact list needed; ``approximate`` a sub-step ended without
+    equilibrium.
     With sensitivities, ``dstate`` and ``dsnapshot`` their derivatives (else None).
     """
 
