@@ -36,6 +36,7 @@ from jaxdem.core.loads import in_situ_preload, release_forces
 from jaxdem.core.state import Loads, grow_capacity
 from jaxdem.core.status import Status
 from jaxdem.differentiable import ParameterMap, monitor_readings
+from jaxdem.results import moving_blocks
 from jaxdem.scene import SceneError, apply_overrides
 from jaxdem.solver import Data, increment_count, run, scene_data
 
@@ -56,6 +57,8 @@ class BatchResult:
       stable: (S,) bool, no mechanism was found.
       converged: (S,) bool, every increment reached equilibrium.
       iterations: (S,) Newton iterations of each sample, summed over increments.
+      moving_blocks: (S,) lists: where a sample found a mechanism, the blocks that kept
+        moving (:func:`jaxdem.results.moving_blocks`, as ``Result.moving_blocks``); else [].
       timing: ``build_s``, ``compile_s``, ``solve_s`` (s); ``chunk`` (samples
         per batch) and ``devices`` (the devices the samples were spread over).
     """
@@ -68,6 +71,7 @@ class BatchResult:
     converged: np.ndarray
     iterations: np.ndarray
     timing: dict
+    moving_blocks: list = dataclasses.field(default_factory=list)
 
 
 @float64
@@ -125,6 +129,7 @@ def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
     out_mon: dict = {}
     status = np.zeros(S, int)
     iterations = np.zeros(S, int)
+    moving: list = [[] for _ in range(S)]
     compile_s = solve_s = 0.0
     for start in range(0, S, size):
         rows = np.arange(start, min(start + size, S))
@@ -141,6 +146,8 @@ def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
         n = len(rows)
         status[rows] = d.status_of[:n]
         iterations[rows] = d.iterations[:n]
+        for i, row in enumerate(rows):
+            moving[row] = d.moving[i]
         keys = ("centroid", "rot", "strain")
         now = {k: getattr(d.state, k) for k in keys}
         ref = None if d.ref is None else {k: getattr(d.ref, k) for k in keys}
@@ -159,7 +166,7 @@ def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
         status=[Status.of(s).label for s in status], stable=status != Status.MECHANISM.code,
         converged=ok, iterations=iterations,
         timing=dict(build_s=build_s, compile_s=compile_s, solve_s=solve_s, chunk=size,
-                    devices=placed))
+                    devices=placed), moving_blocks=moving)
 
 
 _PREPARED: collections.OrderedDict = collections.OrderedDict()
@@ -328,6 +335,7 @@ class _BatchDriver:
         self.status_of = np.full(C, Status.CONVERGED.code)
         self.live = np.ones(C, bool)
         self.iterations = np.zeros(C, int)
+        self.moving: list = [[] for _ in range(C)]  # each sample's mechanism, where it found one
         self.ref = self.dref = self.dstate = self.info = None
         self.records: list = []
         self.bolt_active = np.zeros(model.n_bolts, bool)
@@ -384,6 +392,13 @@ class _BatchDriver:
                 self.state = _grow(self.state, model_mod.bucket(max(2 * cap, need)))
         self.state, self.info = new, info
         self.iterations += np.where(self.live, np.asarray(info["iterations"]), 0)
+        found = np.nonzero(self.live & (status == Status.MECHANISM.code))[0]
+        if found.size:
+            travel = np.asarray(info["travel"])[:, :self.layout.n_rock]
+            limit = np.broadcast_to(np.asarray(self.fields.get(
+                "max_displacement", self.model.max_displacement), float), (self.C,))
+            for c in found:
+                self.moving[c] = moving_blocks(travel[c], float(limit[c]))
         self.status_of = np.where(self.live, status, self.status_of)
         self.live &= status == Status.CONVERGED.code
         self.records.append(dict(stage=stage, step=k, load_factor=k / n,

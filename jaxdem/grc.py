@@ -30,12 +30,11 @@ mean over the excavation's outline of the normal stress sigma_n = n . sigma . n
 that the ``[in_situ]`` stress puts on it (compression positive; exactly p0
 under a hydrostatic stress p0), or a value given.
 
-A level whose solve finds no equilibrium is reported with its status; the
-highest pressure at which a mechanism appears is solved once more alone to
-name the moving blocks (as :func:`jaxdem.fos.write_outputs` does). A level at
-the very edge of a mechanism may end differently in a batch beside other levels
-than alone (docs/ground-reaction.md); when the solve alone finds equilibrium,
-``mechanism["note"]`` says so.
+A level whose solve finds no equilibrium is reported with its status; at the
+highest pressure at which a mechanism appears the moving blocks are named from the
+batch's own solve of that level (:attr:`jaxdem.batch.BatchResult.moving_blocks`,
+the blocks a single run names). A level at the very edge of a mechanism may end
+differently in a batch beside other levels than alone (docs/ground-reaction.md).
 
 The support characteristic (:class:`SupportLine`) is p_s(u) = min(k (u - u0),
 p_max) for u >= u0 and 0 before: stiffness k (kPa per m of convergence),
@@ -73,6 +72,7 @@ from typing import Any
 import numpy as np
 
 from jaxdem.config import float64
+from jaxdem.core.status import Status
 from jaxdem.geometry import centroid, point_in_polygon
 from jaxdem.results import jsonable, write_json
 from jaxdem.scene import SceneError, parse_scene
@@ -155,8 +155,8 @@ class GroundReaction:
       supports_note: what was done to the scene's supports (module docstring).
       dropped_stages: the stages after the excavation's, left out.
       mechanism: the highest pressure whose level is a mechanism, or None: ``level``
-        (index), ``pressure`` (kPa), ``moving_blocks`` (ids from a single solve at that
-        pressure), ``status`` and ``message`` of that solve.
+        (index), ``pressure`` (kPa), ``moving_blocks`` (ids, from the batch's solve of that
+        level), ``status`` and ``message``.
       undecided: levels that neither converged nor found a mechanism.
       support: the :class:`SupportLine`, or None.
       equilibrium: with a support: ``pressure`` p_eq (kPa), ``convergence`` u_eq (m),
@@ -165,7 +165,7 @@ class GroundReaction:
         ``message``; None without.
       message: one paragraph for a rock engineer.
       timing: ``build_s``, ``compile_s``, ``solve_s`` of the batch, ``mechanism_s`` of
-        the naming solve, ``total_s`` (s); ``chunk``, ``devices``.
+        naming the mechanism's blocks, ``total_s`` (s); ``chunk``, ``devices``.
     """
 
     scene: str
@@ -225,7 +225,7 @@ def ground_reaction(scene, excavation: str, levels: int = 16, *, p0: float | Non
         (stiffness, capacity, installed_at) tuple) to intersect with the curve.
       monitor: the monitor that measures convergence for the support line;
         default the first section monitor, else the first point monitor.
-      name_blocks: solve the first mechanism's level alone to name its moving blocks.
+      name_blocks: name the first mechanism's moving blocks (from the batch).
       chunk, devices, progress: see :func:`jaxdem.batch.solve_batch`.
     Returns:
       a :class:`GroundReaction`.
@@ -263,7 +263,7 @@ def ground_reaction(scene, excavation: str, levels: int = 16, *, p0: float | Non
     timing = {k: float(batch.timing[k]) for k in ("build_s", "compile_s", "solve_s")}
     timing.update(chunk=batch.timing["chunk"], devices=batch.timing["devices"])
     t1 = time.perf_counter()
-    mechanism = _mechanism(solved, path, pressure, status, name_blocks)
+    mechanism = _mechanism(solved, path, pressure, batch, name_blocks)
     timing["mechanism_s"] = time.perf_counter() - t1
     undecided = [i for i, s in enumerate(status) if s not in (STABLE, MECHANISM)]
     equilibrium = None if line is None else intersect(pressure, monitors[name], line)
@@ -516,22 +516,17 @@ def _monitor(scene, name) -> str:
                      "section across the opening or a point on its wall ([[monitors]])")
 
 
-def _mechanism(scene, path, pressure, status, name_blocks) -> dict | None:
-    hits = [i for i, s in enumerate(status) if s == MECHANISM]
+def _mechanism(scene, path, pressure, batch, name_blocks) -> dict | None:
+    hits = [i for i, s in enumerate(batch.status) if s == MECHANISM]
     if not hits:
         return None
     i = hits[0]
     out: dict[str, Any] = dict(level=i, pressure=float(pressure[i]), status=MECHANISM,
                                moving_blocks=None, message="")
     if name_blocks:
-        from jaxdem.solver import solve
-
-        result = solve(scene, set={path: float(pressure[i])})
-        out.update(status=str(result.status), moving_blocks=list(result.moving_blocks),
-                   message=result.message)
-        if result.stable:
-            out["note"] = ("the single solve at this pressure found equilibrium although the "
-                           "batched level did not")
+        moving = list(batch.moving_blocks[i])
+        out.update(moving_blocks=moving, message=(
+            f"{Status.MECHANISM.message} Moving blocks: {', '.join(map(str, moving))}."))
     return out
 
 
@@ -591,8 +586,6 @@ def _message(c: GroundReaction) -> str:
             more = len(m["moving_blocks"]) - 20
             text += f" (moving blocks {blocks}" + (f" and {more} more" if more > 0 else "") + ")"
         text += "."
-        if m.get("note"):
-            text += f" Note: {m['note']}."
     else:
         text += " Every level is stable." if not c.undecided else ""
     if c.undecided:

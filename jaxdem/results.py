@@ -408,6 +408,13 @@ def initial_contacts(snap: dict, act: np.ndarray, ref: Any) -> dict[str, np.ndar
             "initial_fn": np.array([f[1] for f in found], float).reshape(n)}
 
 
+def moving_blocks(travel, max_displacement: float) -> list[int]:
+    """The blocks of a mechanism: those that travelled more than a tenth of
+    ``solver.max_displacement`` in the increment that found it (``travel``: (n,) m, the
+    rock blocks' path lengths)."""
+    return [int(i) for i in np.nonzero(np.asarray(travel) > 0.1 * max_displacement)[0]]
+
+
 def stage_frame(scene, model, layout, state, ref, info, bolt_active, name: str, index: int,
                 increments: int) -> dict[str, Any]:
     """Host copies of the state at the end of a stage (or where the analysis stopped in it),
@@ -458,9 +465,7 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
     travel = np.asarray(info["travel"])[:nr]
     max_disp = float(model.max_displacement)
     last = records[-1]
-    moving = []
-    if status == Status.MECHANISM:
-        moving = [int(i) for i in np.nonzero(travel > 0.1 * max_disp)[0]]
+    moving = moving_blocks(travel, max_disp) if status == Status.MECHANISM else []
     stable = status != Status.MECHANISM
     converged = status == Status.CONVERGED
     where = f"load step {last['step']} of stage {last['stage']}"

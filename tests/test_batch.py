@@ -238,6 +238,17 @@ def test_a_program_jax_has_cached_under_its_text_is_stored_for_a_new_source(tmp_
     assert answer1 == answer2 == answer3
 
 
+def test_a_sample_that_finds_a_mechanism_names_its_moving_blocks_as_a_single_run():
+    """A block on a 30 degree incline slides where its joint's friction is below 30
+    degrees (tan(phi) < tan(30): no equilibrium) and rests above: the sliding sample names
+    the block, as a single run of the same scene does, and the resting one names none."""
+    scene = parse_scene(block_on_incline(30.0, 35.0))
+    out = solve_batch(scene, ["joints.base.friction_deg"], [[35.0], [20.0]])
+    single = jaxdem.solve(scene, set={"joints.base.friction_deg": 20.0})
+    assert out.status == ["converged", "mechanism"] and single.status == "mechanism"
+    assert out.moving_blocks == [[], list(single.moving_blocks)] == [[], [1]]
+
+
 def test_a_stored_program_is_found_only_for_its_own_key():
     """The stored programs' key holds what decides a program without tracing it: the
     argument tree with its static fields (here the linear solver), the shapes, the
