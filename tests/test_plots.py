@@ -471,7 +471,7 @@ def test_stress_bar_scale_covers_the_peak(tmp_path, drawn):
     assert len(bars) == 1
     lengths = [np.hypot(*(s[1] - s[0])) for s in bars[0].get_segments()]
     assert max(lengths) * kpa_per_m == pytest.approx(8771.0, rel=1e-9)
-    assert "largest bar 8771 kPa" in note
+    assert "largest stress 8771 kPa" in note
 
 
 def test_sections_use_one_reference_state(tmp_path, drawn):
@@ -655,9 +655,9 @@ def test_largest_stress_bar_fits_its_block(tmp_path, drawn):
     result.geometry["stress"][0] = [8000.0, 100.0, 0.0]  # a peak five times the field
     plots.plot_principal_stresses(result, tmp_path / "stresses.png")
     fig = drawn["stresses.png"]
-    bars = [c for c in fig["collections"] if isinstance(c, matplotlib.collections.LineCollection)
-            and len(c.get_segments()) == 2 * int((~result.geometry["excavated"]).sum())]
-    assert len(bars) == 1
+    bars = [c for c in fig["collections"] if c.get_gid() == "stress bars"]
+    assert len(bars) == 2  # the whole model and the panel around the opening
+    assert len(bars[0].get_segments()) == 2 * int((~result.geometry["excavated"]).sum())
     lengths = np.array([np.hypot(*(s[1] - s[0])) for s in bars[0].get_segments()])
     assert lengths.argmax() // 2 == 0  # the peak's bar is the longest
     assert lengths.max() <= 3.0  # and no longer than its 3 m block
@@ -665,6 +665,10 @@ def test_largest_stress_bar_fits_its_block(tmp_path, drawn):
     room = plots_model.block_room(result.geometry["initial_vertices"][:1],
                                   np.array([[-28.5, -28.5]]))
     assert room == pytest.approx([3.0])
+    diagonal = np.array([[[np.sqrt(0.5), np.sqrt(0.5)], [1.0, 0.0]]])
+    along = plots_model.bar_room(result.geometry["initial_vertices"][:1],
+                                 np.array([[-28.5, -28.5]]), diagonal)
+    np.testing.assert_allclose(along, [[3.0 * np.sqrt(2.0), 3.0]])
     # A key bar of a round stress.
     texts = [t for _, t, _ in fig["texts"]] + fig["legend"]
     assert any("scale: 1 m = " in t for t in texts)
@@ -695,3 +699,30 @@ def test_reference_state_takes_a_small_part_of_the_stage_axis(tmp_path, drawn_ax
     x = shade[0].get_patch_transform().transform(shade[0].get_path().vertices)[:, 0]
     span = panel["xlim"][1] - panel["xlim"][0]
     assert (x.max() - x.min()) / span <= 0.15
+
+
+def test_a_bar_in_a_sliver_is_cut_at_its_edge(tmp_path, drawn):
+    # A 0.1 m x 3 m sliver carrying 20 times the field stress across its width: the
+    # scale is set by the ordinary 3 m blocks, and the sliver's bar ends at its faces.
+    result = make_big_tunnel_result()
+    sliver = np.array([[27.0, -30.0], [27.1, -30.0], [27.1, -27.0], [27.0, -27.0]])
+    g = result.geometry
+    g["initial_vertices"] = g["initial_vertices"] + [sliver]
+    g["final_vertices"] = g["initial_vertices"]
+    g["excavated"] = np.append(g["excavated"], False)
+    g["fixed"] = np.append(g["fixed"], False)
+    g["stress"] = np.vstack([g["stress"], [30000.0, 100.0, 0.0]])
+    g["centroids"] = np.vstack([g["centroids"], [27.05, -28.5]])
+    plots.plot_principal_stresses(result, tmp_path / "stresses.png")
+    fig = drawn["stresses.png"]
+    bars = [c for c in fig["collections"] if c.get_gid() == "stress bars"][0]
+    segments = bars.get_segments()
+    sliver_bars = segments[-2:]
+    lengths = [np.hypot(*(s[1] - s[0])) for s in sliver_bars]
+    assert max(lengths) == pytest.approx(0.1)  # across the sliver: cut at its faces
+    note = next(t for t in fig["legend"] if t.startswith("scale: 1 m = "))
+    assert "1 bars in blocks smaller than" in note
+    kpa_per_m = float(note.split("= ")[1].split(" kPa")[0])
+    assert 1500.0 / kpa_per_m > 0.1  # the ordinary blocks' bars stay readable
+    others = np.array([np.hypot(*(s[1] - s[0])) for s in segments[:-2]])
+    assert others.max() <= 3.0

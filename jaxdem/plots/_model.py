@@ -284,11 +284,12 @@ def plot_principal_stresses(result: Result, path: str | Path) -> Path | None:
     tension. Above ``_MAX_CROSSES`` blocks, one cross per cell of a
     ``_CROSS_GRID`` x ``_CROSS_GRID`` grid is drawn (the block nearest the
     cell centre). The scale is the round number of kPa per metre at which every
-    bar fits its block (:func:`block_room`), or the typical (median) block where its
-    own is smaller (a sliver where joints cross): the largest |sigma| (the peak, often
-    a stress concentration at the opening) is drawn at its full length, no longer than
-    its block (or the typical block); no bar is clipped. A key bar of a round stress is
-    drawn below the legend.
+    bar fits inside its block along its direction (:func:`bar_room`), or, in a block
+    smaller than the typical (median) one (a sliver where joints cross), within the
+    typical block's size; such a bar is then cut at its block's edge (counted in the
+    legend), so that no bar leaves its block. A key bar of a round stress is drawn below
+    the legend. With excavations, a second panel shows the crosses around them at the
+    same scale.
 
     Args:
       result: a :class:`~jaxdem.results.Result` whose ``geometry`` holds
@@ -323,10 +324,8 @@ def plot_principal_stresses(result: Result, path: str | Path) -> Path | None:
     if not (visible & (magnitude > 0)).any():
         return None
 
-    fig, ax = new_figure((9, 7.5))
     lw = line_width(len(final))
     outline = "0.55" if len(final) <= 2000 else "0.7"
-    handles = draw_final_blocks(ax, initial, final, fixed, excavated, lw, outline)
 
     # Thin to one cross per grid cell, then size the bars by the block each sits in.
     shown_polys = [p for p, e in zip(final, excavated, strict=False) if not e]
@@ -334,44 +333,95 @@ def plot_principal_stresses(result: Result, path: str | Path) -> Path | None:
     thinned = sel.sum() > _MAX_CROSSES
     if thinned:
         sel &= nearest_centre_per_cell(centroids, sel, _CROSS_GRID)
-    # One scale for every bar, a round number of kPa per metre, chosen so that each
-    # block's bars stay inside it: no bar is longer than the block's room, twice the
-    # distance from its centroid to its nearest face, or, in a block smaller than the
-    # typical one (a sliver where joints cross, often where the peak is), the typical
-    # block's room. The largest bar is drawn at full length; nothing is clipped.
-    room = block_room([final[i] if i < len(final) else None for i in np.nonzero(sel)[0]],
-                      centroids[sel])
-    typical = float(np.median(room))
+    # One scale for every bar, a round number of kPa per metre, at which each bar fits
+    # in its block along its own direction (the chord through the centroid), or, in a
+    # block smaller than the typical one (a sliver where joints cross, often where the
+    # peak is), within the typical block's size; there the bar is then cut at the
+    # block's edge, so that no bar leaves its block.
+    outlines = [final[i] if i < len(final) else None for i in np.nonzero(sel)[0]]
+    chord = bar_room(outlines, centroids[sel], directions[sel])
+    typical = float(np.median(block_room(outlines, centroids[sel])))
     peak = float(magnitude[sel].max())
-    kpa_per_m = nice_ceil(float(np.max(magnitude[sel] / np.maximum(room, typical))))
-    segments, colours = stress_crosses(centroids[sel], sigma[sel], directions[sel], kpa_per_m)
-    ax.add_collection(
-        LineCollection(
-            segments, colors=colours, linewidths=0.7 if thinned else 1.2, capstyle="butt", zorder=5
-        )
-    )
+    kpa_per_m = nice_ceil(float(np.max(np.abs(sigma[sel]) / np.maximum(chord, typical))))
+    cut = np.abs(sigma[sel]) > chord * kpa_per_m * (1 + 1e-12)
+    segments, colours = stress_crosses(centroids[sel], sigma[sel], directions[sel], kpa_per_m,
+                                       clip=chord * kpa_per_m)
+    model = _ModelLayers.of(result)
+    window = model.zoom()
+    if window is None:
+        fig, ax = new_figure((9, 7.5))
+        axes = [ax]
+    else:
+        fig, axes = _two_panels(model.extent(), window)
+    for ax in axes:
+        handles = draw_final_blocks(ax, initial, final, fixed, excavated, lw, outline)
+        ax.add_collection(LineCollection(segments, colors=colours,
+                                         linewidths=0.7 if thinned else 1.2, capstyle="butt",
+                                         zorder=5, gid="stress bars"))
+        finish_axes(ax, initial + shown_polys + [centroids[visible]])
     s_sel = sigma[sel]
     label = f"compression (max {s_sel.max():.4g} kPa)"
     handles.append(Line2D([], [], color=_COMPRESSION, lw=1.5, label=label))
     if (s_sel < 0).any():
         label = f"tension (max {-s_sel.min():.4g} kPa)"
         handles.append(Line2D([], [], color=_TENSION, lw=1.5, label=label))
-    note = f"scale: 1 m = {format_number(kpa_per_m)} kPa\n(largest bar {peak:.4g} kPa)"
+    note = f"scale: 1 m = {format_number(kpa_per_m)} kPa\n(largest stress {peak:.4g} kPa)"
+    if cut.any():
+        note += (f"\n{int(cut.sum())} bars in blocks smaller than\nthe typical one cut at "
+                 "the block's edge")
     if thinned:
         note += f"\n{int(sel.sum())} of {int(visible.sum())} blocks (grid)"
     handles.append(Line2D([], [], ls="", label=note))
+    ax = axes[-1]
     key = nice_ceil(0.5 * peak)
     ax.add_artist(AnchoredSizeBar(ax.transData, key / kpa_per_m, f"{format_number(key)} kPa",
                                   loc="lower left", bbox_to_anchor=(1.02, 0.0),
                                   bbox_transform=ax.transAxes, color=_COMPRESSION, size_vertical=0,
                                   frameon=False, fontproperties={"size": 8}, sep=3))
-
-    finish_axes(ax, initial + shown_polys + [centroids[visible]])
-    ax.set_title(f"{result.scene}: principal stresses (compression positive)")
+    title = f"{result.scene}: principal stresses (compression positive)"
+    if window is None:
+        ax.set_title(title)
+    else:
+        x0, x1, y0, y1 = window
+        ax.set_xlim(x0, x1)
+        ax.set_ylim(y0, y1)
+        ax.set_title("around the excavations (same scale)", fontsize=10)
+        axes[0].add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, ec="tab:blue",
+                                    lw=1.2, zorder=10, gid="zoom frame"))
+        fig.suptitle(title)
     ax.legend(
         handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False
     )
     return save_figure(fig, path)
+
+
+def bar_room(outlines: Sequence[np.ndarray | None], centres: np.ndarray,
+             directions: np.ndarray) -> np.ndarray:
+    """Per block and principal direction, the longest bar centred on ``centres[i]`` along
+    ``directions[i, k]`` that stays inside ``outlines[i]``: twice the nearer of the
+    outline's crossings ahead and behind (m), shape (n, 2). A block without an outline
+    gets the median of the others."""
+    room = np.full((len(centres), 2), np.nan)
+    for i, (poly, c) in enumerate(zip(outlines, centres, strict=True)):
+        if poly is None or len(poly) < 3:
+            continue
+        a = poly - c
+        e = np.roll(poly, -1, axis=0) - poly
+        for k in range(2):
+            d = directions[i, k]
+            # c + t d = a + s e: t along the bar, s along the edge (Cramer's rule).
+            det = e[:, 0] * d[1] - e[:, 1] * d[0]
+            ok = np.abs(det) > 1e-300
+            safe = np.where(ok, det, 1.0)
+            t = (e[:, 0] * a[:, 1] - e[:, 1] * a[:, 0]) / safe
+            sp = (d[0] * a[:, 1] - d[1] * a[:, 0]) / safe
+            hit = ok & (sp >= -1e-12) & (sp <= 1 + 1e-12)
+            ahead = t[hit & (t > 0)].min(initial=np.inf)
+            behind = -t[hit & (t < 0)].max(initial=-np.inf)
+            room[i, k] = 2.0 * min(ahead, behind)
+    ok = np.isfinite(room) & (room > 0)
+    room[~ok] = float(np.median(room[ok])) if ok.any() else 1.0
+    return room
 
 
 def block_room(outlines: Sequence[np.ndarray | None], centres: np.ndarray) -> np.ndarray:
@@ -423,13 +473,14 @@ def stress_crosses(
     sigma: np.ndarray,
     directions: np.ndarray,
     kpa_per_m: float,
-    clip: float | None = None,
+    clip: float | np.ndarray | None = None,
 ) -> tuple[np.ndarray, list[str]]:
     """Bars of principal-stress crosses: (2n, 2, 2) segments and their colours.
 
     Each bar is centred on its block's centroid, lies along its principal
     direction and is ``|sigma| / kpa_per_m`` long (|sigma| clipped at
-    ``clip`` when given); blue for compression (sigma > 0), red for tension.
+    ``clip`` when given: a number, or (n, 2) per bar); blue for compression
+    (sigma > 0), red for tension.
     """
     mag = np.abs(sigma)
     if clip is not None:
