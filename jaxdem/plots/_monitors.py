@@ -57,7 +57,7 @@ def plot_monitor_history(result: Result, path: str | Path) -> Path | None:
     squeeze = _squeeze if len(stages) > 1 else (lambda v: np.asarray(v, dtype=float))
     if len(stages) > 1:
         ax.axvspan(0.0, _REFERENCE_WIDTH, color="0.92", zorder=0, gid="reference state")
-        note = "in-situ\nstate" if stages[0] == "initial" else "from the\nunloaded start"
+        note = "in-situ\nstate" if stages[0] == "initial" else "from the\nunloaded\nstart"
         ax.annotate(note, xy=(0.5 * _REFERENCE_WIDTH, 1.0), xycoords=("data", "axes fraction"),
                     xytext=(0, -4), textcoords="offset points", ha="center", va="top",
                     fontsize=6, color="0.4")
