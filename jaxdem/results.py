@@ -380,6 +380,16 @@ def final_water_table(scene: Any) -> np.ndarray | None:
     return None if water is None else np.asarray(water.table, float)
 
 
+def support_geometry(scene: Any) -> dict[str, Any]:
+    """For the figures: ``excavations`` (name -> initial outline (n, 2) m) and
+    ``supports`` (per ``[[supports]]``: ``excavation``, ``pressure`` kPa, ``stage``)."""
+    excavations = {e.name: np.asarray(e.vertices, float)
+                   for e in getattr(scene, "excavations", ()) or ()}
+    supports = [{"excavation": sp.excavation, "pressure": float(sp.pressure), "stage": sp.stage}
+                for sp in getattr(scene, "supports", ()) or ()]
+    return {"excavations": excavations, "supports": supports}
+
+
 def initial_contacts(snap: dict, act: np.ndarray, ref: Any) -> dict[str, np.ndarray]:
     """Per active contact slot of ``snap``, what the same slot (block, other block, vertex)
     was at the reference state ``ref`` (the state before the first stage):
@@ -565,6 +575,7 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
         "centroids": cen[:nr],
         "bolts": bolt_anchors(model, state, layout),
         "water_table": final_water_table(scene),
+        **support_geometry(scene),
     }
     hist = [{"stage": h["stage"], "step": h["step"], "load_factor": h["load_factor"],
              "monitors": {k: _scalar(v) for k, v in h["monitors"].items()}} for h in history]

@@ -183,8 +183,9 @@ class SweepResult:
       tornado: monitor -> list of bars, largest swing first: ``path``, ``low``,
         ``base``, ``high`` (parameter values), ``at_low``, ``at_high`` (the
         monitor with that parameter at its low or high point and the others
-        at their base) and ``swing`` (at_high - at_low). A point monitor's
-        value is its displacement magnitude |u|.
+        at their base), ``swing`` (at_high - at_low) and ``quantity`` (what the
+        values are: "|u|", a point monitor's displacement magnitude, or
+        "convergence", a section's; m).
       probability: ``unstable`` (mechanisms), ``decided`` (samples that ended
         stable or in a mechanism), ``undecided`` (iteration limit or
         non-finite), ``p_unstable`` = unstable / decided, and its 95% Wilson
@@ -371,7 +372,8 @@ def _tornado(variables, batch: BatchResult) -> dict:
             lo, base, hi = var.tornado_points()
             y_lo, y_hi = float(y[1 + 2 * j]), float(y[2 + 2 * j])
             bars.append(dict(path=var.path, low=lo, base=base, high=hi, at_base=float(y[0]),
-                             at_low=y_lo, at_high=y_hi, swing=y_hi - y_lo))
+                             at_low=y_lo, at_high=y_hi, swing=y_hi - y_lo,
+                             quantity="|u|" if v.ndim == 2 else "convergence"))
         bars.sort(key=lambda b: -abs(b["swing"]) if math.isfinite(b["swing"]) else 0.0)
         out[name] = bars
     return out

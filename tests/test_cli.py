@@ -521,3 +521,35 @@ def test_sweep_to_csv_without_a_path_returns_the_text(tmp_path):
     ]
     path = result.to_csv(tmp_path / "sweep.csv")
     assert path.read_bytes().decode() == text  # the same CSV (csv.writer line ends)
+
+
+# --------------------------------------------------------------------------- --view
+
+
+def test_view_sets_the_second_panel_of_blocks_png(fake_solver, scene_file, tmp_path,
+                                                  monkeypatch):
+    import jaxdem.plots._canvas as canvas
+
+    limits = {}
+
+    def keep(fig, path):
+        if path.name == "blocks.png":
+            limits["axes"] = [(ax.get_xlim(), ax.get_ylim()) for ax in fig.axes]
+
+    monkeypatch.setattr(canvas, "inspect", keep)
+    out = tmp_path / "o"
+    assert main(["run", str(scene_file), "--out", str(out), "--view", "0", "1", "0.5",
+                 "1.5"]) == 0
+    assert len(limits["axes"]) == 2
+    assert limits["axes"][1] == (pytest.approx((0.0, 1.0)), pytest.approx((0.5, 1.5)))
+
+
+@pytest.mark.parametrize("view", [["1", "0", "0", "1"], ["0", "1", "2", "2"],
+                                  ["0", "nan", "0", "1"]])
+def test_bad_view_exits_2_before_solving(scene_file, tmp_path, capsys, view):
+    status = main(["run", str(scene_file), "--out", str(tmp_path / "o"), "--view", *view])
+    assert status == 2
+    captured = capsys.readouterr()
+    assert "error: " in captured.err and "--view" in captured.err
+    assert not (tmp_path / "o" / "result.json").exists()
+    _no_traceback(captured)

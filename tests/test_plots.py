@@ -11,6 +11,7 @@ from jaxdem import plots
 from jaxdem.core.state import OPEN, SLIP, STICK
 from jaxdem.plots import _canvas as plots_canvas
 from jaxdem.plots import _model as plots_model
+from jaxdem.plots import _monitors as plots_monitors
 from jaxdem.results import Result
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -449,7 +450,8 @@ def test_monitor_history_axis_only_grows(tmp_path, drawn):
     series = [(x, y) for gid, x, y, label in fig["lines"] if len(x) > 1]
     assert series
     xs = np.concatenate([x for x, _ in series])
-    assert xs.min() == 0.0 and xs.max() == 2.0
+    # The reference record before the first stage is squeezed to a narrow span.
+    assert xs.min() == 0.0 and xs.max() == pytest.approx(1.0 + plots_monitors._REFERENCE_WIDTH)
     for x, _ in series:
         assert np.all(np.diff(x) >= 0)
     x, stages = plots.stage_axis(result.history)
@@ -469,7 +471,7 @@ def test_stress_bar_scale_covers_the_peak(tmp_path, drawn):
     assert len(bars) == 1
     lengths = [np.hypot(*(s[1] - s[0])) for s in bars[0].get_segments()]
     assert max(lengths) * kpa_per_m == pytest.approx(8771.0, rel=1e-9)
-    assert "largest bar 8771 kPa" in note
+    assert "largest stress 8771 kPa" in note
 
 
 def test_sections_use_one_reference_state(tmp_path, drawn):
@@ -484,3 +486,243 @@ def test_sections_use_one_reference_state(tmp_path, drawn):
     assert fig["legend"] == ["excavate", "bench"]  # "loading" counts from another state
     labels = [t for gid, t, _ in fig["texts"]]
     assert "9" not in labels and "2.5" in labels and "3" in labels
+
+
+# ----------------------------------------------- "No picture the rock cannot take": figures
+
+
+def make_big_tunnel_result(n: int = 20, side: float = 3.0) -> Result:
+    """A 60 m x 60 m model of 3 m squares with a 6 m x 6 m opening in the middle (the
+    excavation "tunnel", 50 kPa of support), a fan of eight roof bolts (one not
+    installed) and block stresses: a tunnel at the scale of its model."""
+    initial = [_square(side * i - 30.0, side * j - 30.0, side) for j in range(n) for i in range(n)]
+    centres = np.array([v.mean(axis=0) for v in initial])
+    excavated = (np.abs(centres) < side).all(axis=1)
+    outline = np.array([[-3.0, -3.0], [3.0, -3.0], [3.0, 3.0], [-3.0, 3.0]])
+    angles = np.radians(np.linspace(60.0, 120.0, 8))
+    bolts = [np.array([[2.9 * np.cos(a) / max(abs(np.sin(a)), 0.5), 3.0],
+                       [7.0 * np.cos(a), 3.0 + 4.0 * np.sin(a)]]) for a in angles]
+    stress = np.tile([1500.0, 800.0, 100.0], (len(initial), 1))
+    stress[excavated] = 0.0
+    result = make_result()
+    result.scene = "big tunnel"
+    result.monitors = {}
+    result.blocks = [{"id": k, "centroid": centres[k].tolist(), "u": [0.0, -1e-3, 0.0],
+                      "stress": stress[k].tolist(), "fixed": False,
+                      **({"excavated": True} if excavated[k] else {})}
+                     for k in range(len(initial))]
+    result.bolts = [{"id": k, "force": 80.0 + k, "state": "elastic"} for k in range(8)]
+    result.bolts[3]["state"] = "not installed"
+    result.moving_blocks = []
+    result.geometry = {
+        "initial_vertices": initial, "final_vertices": initial,
+        "fixed": np.zeros(len(initial), dtype=bool), "excavated": excavated,
+        "walls": [], "contacts": {}, "monitors": {}, "bolts": bolts,
+        "stress": stress, "centroids": centres,
+        "excavations": {"tunnel": outline},
+        "supports": [{"excavation": "tunnel", "pressure": 50.0, "stage": None}],
+    }
+    return result
+
+
+@pytest.fixture
+def drawn_axes(monkeypatch):
+    """{file name: [(axes, its texts' boxes by gid, its bolt segments in pixels)]}, taken
+    when each figure is saved."""
+    figures: dict = {}
+
+    def keep(fig, path):
+        renderer = fig.canvas.get_renderer()
+        panels = []
+        for ax in fig.axes:
+            texts = [(str(t.get_gid()), t.get_text(), t.get_window_extent(renderer))
+                     for t in ax.texts if t.get_visible()]
+            bolts = [ax.transData.transform(seg) for c in ax.collections
+                     if str(c.get_gid()).startswith("bolts ") for seg in c.get_segments()]
+            panels.append(dict(ax=ax, texts=texts, bolts=bolts, xlim=ax.get_xlim(),
+                               ylim=ax.get_ylim(), title=ax.get_title(),
+                               xlabel=ax.get_xlabel(),
+                               collections={str(c.get_gid()): c for c in ax.collections},
+                               patches=list(ax.patches)))
+        figures[path.name] = dict(panels=panels, size=tuple(fig.get_size_inches()))
+
+    monkeypatch.setattr(plots_canvas, "inspect", keep)
+    return figures
+
+
+def test_zoom_panel_around_the_excavations(tmp_path, drawn_axes):
+    plots.plot_blocks(make_big_tunnel_result(), tmp_path / "blocks.png")
+    panels = drawn_axes["blocks.png"]["panels"]
+    assert len(panels) == 2
+    whole, zoom = panels
+    (x0, x1), (y0, y1) = zoom["xlim"], zoom["ylim"]
+    assert x0 <= -3.0 and x1 >= 3.0 and y0 <= -3.0 and y1 >= 3.0  # the opening is in view
+    assert y1 >= 7.0  # and the bolts' far ends
+    width = whole["xlim"][1] - whole["xlim"][0]
+    assert (x1 - x0) < 0.4 * width and (y1 - y0) < 0.4 * width
+    assert "around the excavations" in zoom["title"]
+    # A frame on the whole model says where the zoom is.
+    frames = [p for p in whole["patches"] if p.get_gid() == "zoom frame"]
+    assert len(frames) == 1
+    # A window given by the caller (jaxdem run --view) replaces the automatic one.
+    plots.plot_blocks(make_big_tunnel_result(), tmp_path / "blocks.png", view=(-10, 10, -5, 12))
+    zoom = drawn_axes["blocks.png"]["panels"][1]
+    assert zoom["xlim"] == pytest.approx((-10, 10)) and zoom["ylim"] == pytest.approx((-5, 12))
+    with pytest.raises(ValueError, match="view"):
+        plots.plot_blocks(make_big_tunnel_result(), tmp_path / "b.png", view=(1, 0, 0, 1))
+
+
+def test_no_zoom_panel_without_excavations(tmp_path, drawn_axes):
+    plots.plot_blocks(make_result(), tmp_path / "blocks.png")
+    assert len(drawn_axes["blocks.png"]["panels"]) == 1
+
+
+def test_bolt_labels_neither_overlap_nor_sit_on_a_bolt(tmp_path, drawn_axes):
+    from matplotlib.path import Path as MplPath
+
+    result = make_big_tunnel_result()
+    plots.plot_blocks(result, tmp_path / "blocks.png")
+    zoom = drawn_axes["blocks.png"]["panels"][1]
+    labels = [(text, box) for gid, text, box in zoom["texts"] if gid.startswith("bolt label")]
+    written = {text for text, _ in labels}
+    assert labels and "83 kN" not in written  # bolt 3 is not installed: no force
+    for i, (_, a) in enumerate(labels):
+        for _, b in labels[i + 1:]:
+            assert not a.overlaps(b)
+        for seg in zoom["bolts"]:
+            assert not MplPath(seg).intersects_bbox(a, filled=False)
+    # The whole-model panel leaves the forces to the zoom.
+    whole = drawn_axes["blocks.png"]["panels"][0]
+    assert not [gid for gid, *_ in whole["texts"] if gid.startswith("bolt label")]
+
+
+def test_bolt_not_installed_is_light_and_dotted(tmp_path, drawn_axes):
+    plots.plot_blocks(make_big_tunnel_result(), tmp_path / "blocks.png")
+    quiet = drawn_axes["blocks.png"]["panels"][1]["collections"]["bolts not installed"]
+    assert len(quiet.get_segments()) == 1
+    assert quiet.get_color()[0][:3] == pytest.approx(matplotlib.colors.to_rgb("0.7"))
+    assert quiet.get_linestyle()[0][1] is not None  # dashed pattern, not solid
+
+
+def test_support_pressure_is_drawn_on_the_opening(tmp_path, drawn_axes):
+    plots.plot_blocks(make_big_tunnel_result(), tmp_path / "blocks.png")
+    zoom = drawn_axes["blocks.png"]["panels"][1]
+    band = zoom["collections"]["support tunnel"]
+    points = np.concatenate(band.get_segments())
+    # On the outline of the 6 m square opening: |x| = 3 or |y| = 3.
+    assert np.all(np.isclose(np.abs(points), 3.0).any(axis=1))
+    assert "support arrows tunnel" in zoom["collections"]
+    assert any(gid == "support label" and text == "50 kPa" for gid, text, _ in zoom["texts"])
+
+
+def test_support_band_only_where_rock_is_left_behind(tmp_path, drawn_axes):
+    result = make_big_tunnel_result()
+    # The blocks under the opening's floor are excavated too (a bench): no rock to push on.
+    centres = np.array(result.geometry["centroids"])
+    floor = (np.abs(centres[:, 0]) < 3.0) & (centres[:, 1] > -6.0) & (centres[:, 1] < -3.0)
+    result.geometry["excavated"] = result.geometry["excavated"] | floor
+    plots.plot_blocks(result, tmp_path / "blocks.png")
+    band = drawn_axes["blocks.png"]["panels"][1]["collections"]["support tunnel"]
+    points = np.concatenate(band.get_segments())
+    assert not np.any(np.isclose(points[:, 1], -3.0) & (np.abs(points[:, 0]) < 2.9))
+
+
+def test_a_single_small_moving_block_is_seen(tmp_path, drawn_axes):
+    result = make_big_tunnel_result()
+    small = _square(-0.2, 3.0, 0.3)  # a 0.3 m block in the crown of a 60 m model
+    result.geometry["initial_vertices"] = result.geometry["initial_vertices"] + [small]
+    result.geometry["final_vertices"] = result.geometry["initial_vertices"]
+    result.geometry["excavated"] = np.append(result.geometry["excavated"], False)
+    result.geometry["fixed"] = np.append(result.geometry["fixed"], False)
+    k = len(result.geometry["initial_vertices"]) - 1
+    result.moving_blocks = [k]
+    plots.plot_blocks(result, tmp_path / "blocks.png")
+    whole, zoom = drawn_axes["blocks.png"]["panels"]
+    # Filled and outlined in both panels, and ringed where it is small for the panel.
+    for panel in (whole, zoom):
+        fill = panel["collections"]["moving blocks"]
+        assert fill.get_facecolor()[0][3] > 0  # filled, not only outlined
+        np.testing.assert_allclose(fill.get_paths()[0].vertices[:4], small)
+    ring = whole["collections"]["moving ring"]
+    np.testing.assert_allclose(ring.get_offsets(), [small.mean(axis=0)])
+    assert ring.get_sizes()[0] >= 100  # points^2: about 20 points across
+    (x0, x1), (y0, y1) = zoom["xlim"], zoom["ylim"]
+    assert x0 < -0.2 and x1 > 0.1 and y0 < 3.0 and y1 > 3.3
+
+
+def test_largest_stress_bar_fits_its_block(tmp_path, drawn):
+    result = make_big_tunnel_result()
+    result.geometry["stress"][0] = [8000.0, 100.0, 0.0]  # a peak five times the field
+    plots.plot_principal_stresses(result, tmp_path / "stresses.png")
+    fig = drawn["stresses.png"]
+    bars = [c for c in fig["collections"] if c.get_gid() == "stress bars"]
+    assert len(bars) == 2  # the whole model and the panel around the opening
+    assert len(bars[0].get_segments()) == 2 * int((~result.geometry["excavated"]).sum())
+    lengths = np.array([np.hypot(*(s[1] - s[0])) for s in bars[0].get_segments()])
+    assert lengths.argmax() // 2 == 0  # the peak's bar is the longest
+    assert lengths.max() <= 3.0  # and no longer than its 3 m block
+    assert lengths.max() >= 1.0  # yet drawn large enough to read
+    room = plots_model.block_room(result.geometry["initial_vertices"][:1],
+                                  np.array([[-28.5, -28.5]]))
+    assert room == pytest.approx([3.0])
+    diagonal = np.array([[[np.sqrt(0.5), np.sqrt(0.5)], [1.0, 0.0]]])
+    along = plots_model.bar_room(result.geometry["initial_vertices"][:1],
+                                 np.array([[-28.5, -28.5]]), diagonal)
+    np.testing.assert_allclose(along, [[3.0 * np.sqrt(2.0), 3.0]])
+    # A key bar of a round stress.
+    texts = [t for _, t, _ in fig["texts"]] + fig["legend"]
+    assert any("scale: 1 m = " in t for t in texts)
+
+
+def test_tornado_names_the_monitor_and_stays_readable(tmp_path, drawn_axes):
+    def bars(quantity):
+        return [dict(path=f"joints.j{k}.kn", low=1e6, base=2e6, high=4e6, at_base=2e-3,
+                     at_low=3e-3 - 2e-4 * k, at_high=1e-3 + 2e-4 * k, swing=-2e-3 + 4e-4 * k,
+                     quantity=quantity) for k in range(3)]
+
+    tornado = {"crown": bars("|u|"), "span": bars("convergence"), "height": bars("convergence"),
+               "wall": bars("|u|")}
+    plots.plot_tornado(tornado, tmp_path / "tornado.png")
+    fig = drawn_axes["tornado.png"]
+    labels = [p["xlabel"] for p in fig["panels"] if p["xlabel"]]
+    assert "crown |u| (mm)" in labels and "span convergence (mm)" in labels
+    width, height = fig["size"]
+    assert width / height < 3.0  # four monitors in one row made it 26 x 3 inches
+
+
+def test_reference_state_takes_a_small_part_of_the_stage_axis(tmp_path, drawn_axes):
+    result = make_result()  # two stages: "gravity" (the reference) and "excavate"
+    plots.plot_monitor_history(result, tmp_path / "monitors.png")
+    panel = drawn_axes["monitors.png"]["panels"][0]
+    shade = [p for p in panel["patches"] if p.get_gid() == "reference state"]
+    assert len(shade) == 1
+    x = shade[0].get_patch_transform().transform(shade[0].get_path().vertices)[:, 0]
+    span = panel["xlim"][1] - panel["xlim"][0]
+    assert (x.max() - x.min()) / span <= 0.15
+
+
+def test_a_bar_in_a_sliver_is_cut_at_its_edge(tmp_path, drawn):
+    # A 0.1 m x 3 m sliver carrying 20 times the field stress across its width: the
+    # scale is set by the ordinary 3 m blocks, and the sliver's bar ends at its faces.
+    result = make_big_tunnel_result()
+    sliver = np.array([[27.0, -30.0], [27.1, -30.0], [27.1, -27.0], [27.0, -27.0]])
+    g = result.geometry
+    g["initial_vertices"] = g["initial_vertices"] + [sliver]
+    g["final_vertices"] = g["initial_vertices"]
+    g["excavated"] = np.append(g["excavated"], False)
+    g["fixed"] = np.append(g["fixed"], False)
+    g["stress"] = np.vstack([g["stress"], [30000.0, 100.0, 0.0]])
+    g["centroids"] = np.vstack([g["centroids"], [27.05, -28.5]])
+    plots.plot_principal_stresses(result, tmp_path / "stresses.png")
+    fig = drawn["stresses.png"]
+    bars = [c for c in fig["collections"] if c.get_gid() == "stress bars"][0]
+    segments = bars.get_segments()
+    sliver_bars = segments[-2:]
+    lengths = [np.hypot(*(s[1] - s[0])) for s in sliver_bars]
+    assert max(lengths) == pytest.approx(0.1)  # across the sliver: cut at its faces
+    note = next(t for t in fig["legend"] if t.startswith("scale: 1 m = "))
+    assert "1 bars in blocks smaller than" in note
+    kpa_per_m = float(note.split("= ")[1].split(" kPa")[0])
+    assert 1500.0 / kpa_per_m > 0.1  # the ordinary blocks' bars stay readable
+    others = np.array([np.hypot(*(s[1] - s[0])) for s in segments[:-2]])
+    assert others.max() <= 3.0

@@ -59,6 +59,7 @@ def test_tornado_is_one_at_a_time(incline):
                                           rel=1e-9)
     assert kn["at_low"] > kn["at_high"]
     assert kn["swing"] == pytest.approx(kn["at_high"] - kn["at_low"])
+    assert kn["quantity"] == "|u|"  # a point monitor: the tornado's axis says so
     assert res.method == "grid" and res.batch.theta.shape == (4, 2)
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import os
 import sys
 from collections.abc import Sequence
@@ -76,9 +77,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
     resource = resources.files("jaxdem").joinpath("data", "demo.toml")
     if not resource.is_file():
         raise InputError("the bundled demo scene jaxdem/data/demo.toml is missing")
+    view = _check_view(args)
     with resources.as_file(resource) as path:
         return _solve_and_report(path, Path(args.out), overrides={}, vtk=args.vtk,
-                                 figures=not args.no_figures)
+                                 figures=not args.no_figures, view=view)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -86,8 +88,21 @@ def cmd_run(args: argparse.Namespace) -> int:
     path = Path(args.scene)
     out = Path(args.out) if args.out else Path("out") / path.stem
     overrides = _set_overrides(args)
+    view = _check_view(args)
     return _solve_and_report(path, out, overrides=overrides, vtk=args.vtk,
-                             figures=not args.no_figures)
+                             figures=not args.no_figures, view=view)
+
+
+def _check_view(args: argparse.Namespace) -> tuple[float, ...] | None:
+    """``--view X0 X1 Y0 Y1`` (m), checked before any computation; None without it."""
+    view = getattr(args, "view", None)
+    if view is None:
+        return None
+    x0, x1, y0, y1 = view
+    if not (all(math.isfinite(v) for v in view) and x0 < x1 and y0 < y1):
+        raise InputError(f"--view must be X0 X1 Y0 Y1 (m) with X0 < X1 and Y0 < Y1 "
+                         f"(got {' '.join(f'{v:g}' for v in view)})")
+    return tuple(view)
 
 
 def cmd_check(args: argparse.Namespace) -> int:
@@ -315,7 +330,8 @@ def _prepare_figures() -> None:
 
 
 def _solve_and_report(path: Path, out: Path, overrides: dict[str, Any],
-                      vtk: bool = False, figures: bool = True) -> int:
+                      vtk: bool = False, figures: bool = True,
+                      view: tuple[float, ...] | None = None) -> int:
     _mark("start")
     scene = _load(path, overrides)
     _check_out(out)
@@ -348,7 +364,7 @@ def _solve_and_report(path: Path, out: Path, overrides: dict[str, Any],
     if figures:
         from jaxdem.plots import write_figures
 
-        written += write_figures(result, out)
+        written += write_figures(result, out, **({"view": view} if view else {}))
     _mark("figures")
     if vtk:
         from jaxdem.vtk import write_vtk

@@ -61,6 +61,12 @@ def _add_figures_option(parser: argparse.ArgumentParser) -> None:
                         help="write result.json only, no figures (faster)")
 
 
+def _add_view_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--view", nargs=4, type=float, metavar=("X0", "X1", "Y0", "Y1"),
+                        help="window (m) of blocks.png's second panel (default: around the "
+                        "excavations)")
+
+
 def _add_vtk_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--vtk", action="store_true",
                         help="also write blocks.vtk (polygons with displacement, stress, "
@@ -87,6 +93,7 @@ def make_parser() -> argparse.ArgumentParser:
     )
     _add_vtk_option(demo)
     _add_figures_option(demo)
+    _add_view_option(demo)
     demo.set_defaults(func=cmd_demo)
 
     run = sub.add_parser("run", help="solve a scene, write result.json and figures")
@@ -97,6 +104,7 @@ def make_parser() -> argparse.ArgumentParser:
                     "in_situ.k0=1.5 (repeatable)")
     _add_vtk_option(run)
     _add_figures_option(run)
+    _add_view_option(run)
     run.set_defaults(func=cmd_run)
 
     check = sub.add_parser("check", help="validate a scene and draw its blocks")

@@ -30,6 +30,7 @@ solve; each module imports only those above it):
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 from jaxdem.plots._canvas import (
@@ -73,10 +74,13 @@ __all__ = [
 ]
 
 
-def write_figures(result: Result, out_dir: str | Path) -> list[Path]:
+def write_figures(result: Result, out_dir: str | Path, *,
+                  view: Sequence[float] | None = None) -> list[Path]:
     """Write the figures of a solve to ``out_dir``.
 
-    ``blocks.png`` always; ``monitors.png`` (monitor histories) and
+    ``blocks.png`` always (with a second panel around the excavations, or on ``view`` =
+    (x0, x1, y0, y1) m when given: :func:`plot_blocks`); ``monitors.png`` (monitor
+    histories) and
     ``sections.png`` (monitors at the end of each stage) when there are
     monitors; ``stresses.png`` (principal-stress crosses) when a block
     carries a stress.
@@ -85,7 +89,7 @@ def write_figures(result: Result, out_dir: str | Path) -> list[Path]:
       The paths written, in the order blocks, monitors, stresses, sections.
     """
     out_dir = Path(out_dir)
-    paths = [plot_blocks(result, out_dir / "blocks.png")]
+    paths = [plot_blocks(result, out_dir / "blocks.png", view=view)]
     for plot, name in (
         (plot_monitor_history, "monitors.png"),
         (plot_principal_stresses, "stresses.png"),

@@ -1,7 +1,8 @@
 """The canvas every figure is drawn on: a matplotlib ``Figure`` outside pyplot with the
 Agg renderer (:func:`new_figure`), saved at ``DPI`` and released (:func:`save_figure`, which calls
 the ``inspect`` hook), axes fitted to the shapes (:func:`finish_axes`), labels moved
-apart (:func:`place_labels`), round scales and lengths for legends
+apart (:func:`place_labels`) and bolt forces beside their bolts (:func:`place_bolt_labels`),
+a window around the excavations (:func:`zoom_window`), round scales and lengths for legends
 (:func:`nice_magnification`, :func:`nice_ceil`, :func:`format_length`) and thinning to
 one item per grid cell (:func:`largest_per_cell`).
 
@@ -21,6 +22,7 @@ from typing import Any
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.path import Path as MplPath
 
 DPI = 150
 PNG_OPTIONS = {"compress_level": 1}
@@ -146,6 +148,106 @@ def place_labels(fig: Figure, ax: Any, texts: list[Any]) -> None:
             if not any(box.overlaps(other) for other in placed):
                 break
         placed.append(text.get_window_extent(renderer))
+
+
+def place_bolt_labels(fig: Figure, ax: Any, texts: list[Any], segments: list[np.ndarray],
+                      avoid: Sequence[Any] = ()) -> int:
+    """Put each bolt's force label beside its bolt, off every bolt line and apart.
+
+    ``texts[k]`` labels ``segments[k]`` (its (2, 2) anchors, m); labels are placed in
+    order (largest force first). Each tries, in turn, the middle, a third and two thirds
+    along its bolt, on either side, at a distance perpendicular to the bolt that just
+    clears the line; it takes the first place whose box (in pixels) crosses no bolt and
+    overlaps no label placed before it nor a box of ``avoid`` (other labels). A label that
+    finds no place, or whose bolt is outside the axes' view, is removed.
+
+    Returns:
+      How many labels were removed for want of room (not counting those out of view).
+    """
+    if not texts:
+        return 0
+    renderer = fig.canvas.get_renderer()
+    ax.apply_aspect()
+    to_pixels = ax.transData
+    points_per_pixel = 72.0 / fig.dpi
+    bolt_paths = [MplPath(to_pixels.transform(seg)) for seg in segments]
+    view = ax.get_window_extent(renderer)
+    placed = [box for box in (t.get_window_extent(renderer) for t in avoid)]
+    crowded = 0
+    for text, seg in zip(texts, segments, strict=True):
+        ends = to_pixels.transform(seg)
+        if not any(view.contains(*end) for end in (ends[0], ends[1], ends.mean(axis=0))):
+            text.remove()
+            continue
+        d = ends[1] - ends[0]
+        normal = np.array([-d[1], d[0]]) / max(float(np.hypot(*d)), 1e-9)
+        text.set_position((0.0, 0.0))
+        box = text.get_window_extent(renderer)
+        # The distance from the box centre to the line at which the box just clears it.
+        clear = 0.5 * (box.width * abs(normal[0]) + box.height * abs(normal[1])) + 3.0
+        spot = None
+        for t in (0.5, 0.33, 0.67, 0.2, 0.8):
+            anchor = seg[0] + t * (seg[1] - seg[0])
+            for side in (1.0, -1.0):
+                offset = side * clear * normal * points_per_pixel
+                text.xy = anchor
+                text.set_position(tuple(offset))
+                box = text.get_window_extent(renderer)
+                grown = box.expanded(1.05, 1.1)
+                if any(grown.overlaps(other) for other in placed):
+                    continue
+                if any(path.intersects_bbox(box, filled=False) for path in bolt_paths):
+                    continue
+                spot = box
+                break
+            if spot is not None:
+                break
+        if spot is None:
+            text.remove()
+            crowded += 1
+        else:
+            placed.append(spot)
+    return crowded
+
+
+def zoom_window(focus: Sequence[np.ndarray], model: Sequence[np.ndarray],
+                also: Sequence[np.ndarray] = (), margin: float = 0.6,
+                largest: float = 0.6) -> tuple[float, float, float, float] | None:
+    """A view (x0, x1, y0, y1) around ``focus`` (the excavations' outlines, m): their
+    bounding box grown by ``margin`` times its larger side on every side, made
+    square-ish (neither side under half the other), grown to take in the shapes of
+    ``also`` that reach into it (bolts, moving blocks) with 5% to spare, and kept inside
+    the model's bounding box. None when there is nothing to focus on or the view would
+    cover more than ``largest`` of the model's width and height (the whole model is then
+    close enough)."""
+    f, m = _points(focus), _points(model)
+    if not len(f) or not len(m):
+        return None
+    lo, hi = f.min(axis=0), f.max(axis=0)
+    side = max(float((hi - lo).max()), 1e-9)
+    centre = 0.5 * (lo + hi)
+    half = 0.5 * (hi - lo) + margin * side
+    half = np.maximum(half, 0.5 * half.max())
+    lo, hi = centre - half, centre + half
+    for shape in also:
+        pts = _points([shape])
+        if len(pts) and ((pts >= lo) & (pts <= hi)).all(axis=1).any():
+            lo = np.minimum(lo, pts.min(axis=0) - 0.05 * side)
+            hi = np.maximum(hi, pts.max(axis=0) + 0.05 * side)
+    m_lo, m_hi = m.min(axis=0), m.max(axis=0)
+    lo, hi = np.maximum(lo, m_lo), np.minimum(hi, m_hi)
+    if ((hi - lo) > largest * (m_hi - m_lo)).all():
+        return None
+    return float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])
+
+
+def _points(shapes: Sequence[np.ndarray]) -> np.ndarray:
+    """All finite points of ``shapes`` as one (n, 2) array."""
+    pts = [np.asarray(s, dtype=float).reshape(-1, 2) for s in shapes if np.size(s)]
+    if not pts:
+        return np.zeros((0, 2))
+    every = np.concatenate(pts)
+    return every[np.isfinite(every).all(axis=1)]
 
 
 def nice_magnification(size: float, u_max: float, fraction: float = 0.05) -> float:

@@ -1,7 +1,8 @@
 """Layers drawn on a block figure: final and excavated outlines, contact points by state,
-displacement arrows, bolts by state with their forces, monitor points and sections, the
-water table. Each takes an axes and plain arrays (or a ``Result``), adds its artists
-(collections carry a whole layer in one artist) and returns its legend handles.
+displacement arrows, bolts by state with their forces, moving blocks, support pressure on
+the excavations, monitor points and sections, the water table. Each takes an axes and
+plain arrays (or a ``Result``), adds its artists (collections carry a whole layer in one
+artist) and returns its legend handles.
 
 Used by the model figures (:mod:`jaxdem.plots._model`) and the scene check
 (:mod:`jaxdem.plots._scene`); draws with :mod:`jaxdem.plots._canvas`.
@@ -16,11 +17,13 @@ import numpy as np
 from matplotlib.collections import LineCollection, PolyCollection
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
+from matplotlib.path import Path as MplPath
 
 from jaxdem.core.state import OPEN, SLIP, STICK
 from jaxdem.plots._canvas import (
     format_length,
     format_magnification,
+    format_number,
     largest_per_cell,
     nice_magnification,
     polygon_centroid,
@@ -36,11 +39,14 @@ _STATE_STYLE = {
 _MONITOR_COLOUR = "tab:blue"
 
 # Bolt states: colour and line style; forces written on at most _MAX_BOLT_LABELS bolts.
+NOT_INSTALLED = "not installed"
 _BOLT_STYLE = {
     "elastic": ("saddlebrown", "-"),
     "yielded": ("darkviolet", "-"),
     "pulled out": ("0.45", "--"),
+    NOT_INSTALLED: ("0.7", ":"),  # its stage was not reached: no force written
 }
+_SUPPORT_COLOUR = "teal"
 _MAX_BOLT_LABELS = 60
 _ARROW_COLOUR = "tab:purple"
 # Above _MAX_ARROWS blocks, draw only the largest displacement in each cell of an
@@ -210,6 +216,7 @@ def draw_displacements(
         ms=5,
         label=f"displacements x {format_magnification(mag)}\n(max {format_length(u_max)})"
         + ("\nlargest per grid cell" if thinned else ""),
+        gid="displacements",
     )
 
 
@@ -217,8 +224,16 @@ def bolt_segments(geometry: dict[str, Any]) -> list[np.ndarray]:
     return [np.asarray(b, dtype=float).reshape(2, 2) for b in geometry.get("bolts") or []]
 
 
-def draw_bolts(ax: Any, result: Result, segments: list[np.ndarray], size: float) -> list[Any]:
-    """Bolts as lines between their anchors, by state, labelled with force (kN)."""
+def draw_bolts(ax: Any, result: Result, segments: list[np.ndarray], size: float,
+               labels: bool = True) -> list[Any]:
+    """Bolts as lines between their anchors, by state, labelled with force (kN).
+
+    A bolt "not installed" (its stage was not reached) is drawn light grey and dotted,
+    without a force. With ``labels``, the forces are written as annotations with gid
+    "bolt label K" (K: the bolt's index in ``segments``) at the bolt's middle;
+    :func:`~jaxdem.plots._canvas.place_bolt_labels` then moves them off their bolt and
+    apart (at most ``_MAX_BOLT_LABELS``, largest first).
+    """
     if not segments:
         return []
     info = list(result.bolts or [])
@@ -232,40 +247,145 @@ def draw_bolts(ax: Any, result: Result, segments: list[np.ndarray], size: float)
         if not sel:
             continue
         colour, ls = _BOLT_STYLE.get(state, ("0.3", "-"))
+        quiet = state == NOT_INSTALLED
         ax.add_collection(
             LineCollection(
                 [segments[k] for k in sel],
                 colors=colour,
                 linestyles=ls,
-                linewidths=2.5 if len(segments) <= 200 else 1.2,
+                linewidths=(1.5 if quiet else 2.5) if len(segments) <= 200 else 1.2,
                 zorder=6.5,
+                gid=f"bolts {state}",
             )
         )
         handles.append(
             Line2D([], [], color=colour, ls=ls, lw=2.5, label=f"bolt {state} ({len(sel)})")
         )
+    if not labels:
+        return handles
     forces = np.array(
         [
             float((info[k] if k < len(info) else {}).get("force", np.nan))
+            if states[k] != NOT_INSTALLED else np.nan
             for k in range(len(segments))
         ]
     )
     finite = np.nonzero(np.isfinite(forces))[0]
+    finite = finite[np.argsort(-np.abs(forces[finite]), kind="stable")]
     if len(finite) > _MAX_BOLT_LABELS:
-        finite = finite[np.argsort(-np.abs(forces[finite]))[:_MAX_BOLT_LABELS]]
+        finite = finite[:_MAX_BOLT_LABELS]
         handles.append(Line2D([], [], ls="", label=f"forces of the {_MAX_BOLT_LABELS} largest"))
     for k in finite:
-        mid = segments[k].mean(axis=0)
         ax.annotate(
             f"{forces[k]:.3g} kN",
-            xy=mid,
-            xytext=(3, 3),
+            xy=segments[k].mean(axis=0),
+            xytext=(0, 0),
             textcoords="offset points",
+            ha="center",
+            va="center",
             fontsize=7,
             color=_BOLT_STYLE.get(states[k], ("0.3", "-"))[0],
             zorder=9,
+            gid=f"bolt label {k}",
+            bbox=dict(boxstyle="square,pad=0.15", fc="white", ec="none", alpha=0.85),
         )
     return handles
+
+
+def draw_moving(ax: Any, final: list[np.ndarray], moving: Sequence[int], lw: float,
+                size: float) -> list[Any]:
+    """Blocks still moving at a mechanism: filled light red, outlined red; a block
+    smaller than 3% of ``size`` (the panel's extent, m) is also ringed, so that a single
+    small block is seen at the scale of the whole model."""
+    if not moving:
+        return []
+    polys = [final[int(i)] for i in moving]
+    ax.add_collection(
+        PolyCollection(polys, closed=True, facecolors=(1.0, 0.0, 0.0, 0.3), edgecolors="red",
+                       linewidths=max(2.0 * lw, 1.5), zorder=4, gid="moving blocks")
+    )
+    extent = np.array([float(np.ptp(p, axis=0).max()) for p in polys])
+    small = extent < 0.03 * size
+    if small.any():
+        centres = np.array([polygon_centroid(p) for p, s in zip(polys, small, strict=True) if s])
+        ax.scatter(centres[:, 0], centres[:, 1], s=400, facecolors="none", edgecolors="red",
+                   linewidths=1.5, zorder=8.5, gid="moving ring")
+    return [Patch(facecolor=(1.0, 0.0, 0.0, 0.3), edgecolor="red", lw=2.0,
+                  label=f"moving ({len(moving)})")]
+
+
+def draw_supports(ax: Any, excavations: dict[str, Any], supports: Sequence[dict[str, Any]],
+                  rock: list[np.ndarray]) -> list[Any]:
+    """Support pressure on the excavation boundary: a band along the faces of the rock
+    it pushes on (where rock is left behind the outline) and arrows from the opening
+    into the rock, with the pressure (kPa) written in the opening.
+
+    ``excavations``: name -> outline (n, 2) m, counter-clockwise; ``supports``: dicts with
+    ``excavation`` and ``pressure`` (kPa); ``rock``: the outlines of the blocks left.
+    """
+    pressure: dict[str, float] = {}
+    for sp in supports or []:
+        name = sp.get("excavation")
+        if name in (excavations or {}):
+            pressure[name] = pressure.get(name, 0.0) + float(sp.get("pressure", 0.0))
+    handles = []
+    for name, p in pressure.items():
+        outline = np.asarray(excavations[name], dtype=float).reshape(-1, 2)
+        points, normals = _outline_samples(outline, 48)
+        span = float(np.ptp(outline, axis=0).max())
+        behind = _inside_any(points + 0.02 * span * normals, rock)
+        if not behind.any() or p <= 0.0:
+            continue
+        # The band: the outline between consecutive samples with rock behind both.
+        nxt = np.roll(np.arange(len(points)), -1)
+        pieces = [np.array([points[i], points[j]]) for i, j in enumerate(nxt)
+                  if behind[i] and behind[j]]
+        ax.add_collection(LineCollection(pieces, colors=_SUPPORT_COLOUR, linewidths=4.0,
+                                         alpha=0.45, capstyle="butt", zorder=5.5,
+                                         gid=f"support {name}"))
+        arrows = np.nonzero(behind)[0][::3]
+        length = 0.1 * span
+        tails = points[arrows] - length * normals[arrows]
+        ax.quiver(tails[:, 0], tails[:, 1], length * normals[arrows, 0],
+                  length * normals[arrows, 1], angles="xy", scale_units="xy", scale=1.0,
+                  color=_SUPPORT_COLOUR, width=0.004, zorder=5.6, gid=f"support arrows {name}")
+        top = arrows[np.argmax(points[arrows, 1])]
+        ax.annotate(f"{format_number(p)} kPa", xy=tails[list(arrows).index(top)],
+                    xytext=(0, -6), textcoords="offset points", ha="center", va="top",
+                    fontsize=7, color=_SUPPORT_COLOUR, zorder=9, gid="support label",
+                    bbox=dict(boxstyle="square,pad=0.1", fc="white", ec="none", alpha=0.8))
+        handles.append(Line2D([], [], color=_SUPPORT_COLOUR, lw=4.0, alpha=0.6,
+                              label=f"support {format_number(p)} kPa ({name})"))
+    return handles
+
+
+def _outline_samples(outline: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """About ``n`` points evenly along a closed counter-clockwise outline (every vertex
+    kept) and the outward unit normal of the edge each lies on."""
+    ends = np.roll(outline, -1, axis=0)
+    edges = ends - outline
+    lengths = np.hypot(edges[:, 0], edges[:, 1])
+    step = lengths.sum() / n
+    points, normals = [], []
+    for a, d, length in zip(outline, edges, lengths, strict=True):
+        if length <= 0.0:
+            continue
+        k = max(int(np.ceil(length / step)), 1)
+        t = (np.arange(k) + 0.5) / k
+        points.append(a + t[:, None] * d)
+        normals.append(np.tile([d[1] / length, -d[0] / length], (k, 1)))  # right of a CCW edge
+    return np.concatenate(points), np.concatenate(normals)
+
+
+def _inside_any(points: np.ndarray, polygons: list[np.ndarray]) -> np.ndarray:
+    """Which points lie inside at least one of the polygons."""
+    inside = np.zeros(len(points), dtype=bool)
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    for poly in polygons:
+        if (poly.max(axis=0) < lo).any() or (poly.min(axis=0) > hi).any():
+            continue
+        inside |= MplPath(poly).contains_points(points)
+    return inside
 
 
 def draw_monitors(ax: Any, monitors: dict[str, Any], size: float,

@@ -52,13 +52,15 @@ def plot_monitor_history(result: Result, path: str | Path) -> Path | None:
     fig, ax = new_figure((8, 4.8))
     # Before the first stage (loading, or the in-situ state) displacements count from
     # the unloaded start; from the first stage on, from the state before it (as in
-    # result.json). Shade that part so that the change of reference is not read as motion.
+    # result.json). Shade that part, narrow (_REFERENCE_WIDTH of a stage: nothing moves
+    # there on this axis), so that the change of reference is not read as motion.
+    squeeze = _squeeze if len(stages) > 1 else (lambda v: np.asarray(v, dtype=float))
     if len(stages) > 1:
-        ax.axvspan(0.0, 1.0, color="0.92", zorder=0)
-        note = "in-situ state" if stages[0] == "initial" else "from the unloaded start"
-        ax.annotate(note, xy=(0.5, 0.0), xycoords=("data", "axes fraction"),
-                    xytext=(0, 4), textcoords="offset points", ha="center", fontsize=7,
-                    color="0.4")
+        ax.axvspan(0.0, _REFERENCE_WIDTH, color="0.92", zorder=0, gid="reference state")
+        note = "in-situ\nstate" if stages[0] == "initial" else "from the\nunloaded\nstart"
+        ax.annotate(note, xy=(0.5 * _REFERENCE_WIDTH, 1.0), xycoords=("data", "axes fraction"),
+                    xytext=(0, -4), textcoords="offset points", ha="center", va="top",
+                    fontsize=6, color="0.4")
     for k, name in enumerate(names):
         values = np.array(
             [float((r.get("monitors") or {}).get(name, np.nan)) for r in history], dtype=float
@@ -83,16 +85,16 @@ def plot_monitor_history(result: Result, path: str | Path) -> Path | None:
             elif j > 1 and len(prev):
                 xs = np.concatenate([[x[prev[-1]]], xs])
                 ys = np.concatenate([[1e3 * values[prev[-1]]], ys])
-            ax.plot(xs, ys, marker="o", ms=3, lw=1.5, color=colour, markevery=slice(
+            ax.plot(squeeze(xs), ys, marker="o", ms=3, lw=1.5, color=colour, markevery=slice(
                     1 if len(xs) > len(sel) else 0, None),
                     label=None if labelled else label)
             labelled = True
 
     # Stage boundaries at whole numbers; each stage's name at its middle.
     for j in range(1, len(stages)):
-        ax.axvline(j, color="0.5", ls="--", lw=0.8)
-    ax.set_xticks(np.arange(len(stages) + 1))
-    ax.set_xticks(np.arange(len(stages)) + 0.5, minor=True)
+        ax.axvline(squeeze(j), color="0.5", ls="--", lw=0.8)
+    ax.set_xticks(squeeze(np.arange(len(stages) + 1)))
+    ax.set_xticks(squeeze(np.arange(len(stages)) + 0.5), minor=True)
     ax.set_xticklabels([""] * (len(stages) + 1))
     ax.set_xticklabels(stages, minor=True, fontsize=8)
     ax.tick_params(axis="x", which="minor", length=0)
@@ -100,10 +102,21 @@ def plot_monitor_history(result: Result, path: str | Path) -> Path | None:
     ax.set_ylabel("monitor value (mm)")
     ax.grid(True, axis="y", lw=0.4, alpha=0.5)
     if len(stages):
-        ax.set_xlim(0.0, float(len(stages)))
+        ax.set_xlim(0.0, float(squeeze(len(stages))))
     ax.legend(fontsize=8, loc="best")
     ax.set_title(f"{result.scene}: monitors")
     return save_figure(fig, path)
+
+
+_REFERENCE_WIDTH = 0.15
+"""Width on the stage axis of the reference record before the first stage (the others
+take 1 each)."""
+
+
+def _squeeze(x: Any) -> np.ndarray:
+    """The stage axis with the reference stage [0, 1] squeezed to [0, _REFERENCE_WIDTH]."""
+    x = np.asarray(x, dtype=float)
+    return np.where(x <= 1.0, _REFERENCE_WIDTH * x, x - 1.0 + _REFERENCE_WIDTH)
 
 
 def stage_axis(history: Sequence[dict[str, Any]]) -> tuple[np.ndarray, list[str]]:
