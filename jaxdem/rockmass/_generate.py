@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from jaxdem import geometry
+from jaxdem.rockmass._bonding import bond_small_blocks
 from jaxdem.rockmass._cutting import (
     SLIVER_RATIO,
     Work,
@@ -34,6 +35,11 @@ __all__ = ["Piece", "RockMass", "generate"]
 
 SNAP = 1e-2
 """Trace ends closer than this times the smallest length scale to a corner snap to it (-)."""
+MIN_BLOCK_FRACTION = 0.1
+"""Default ``domain.min_block_area``: this times the smallest joint-set spacing squared (-).
+A block of the regular pattern of two sets is at least spacing^2 (s1 s2 / sin of the angle
+between them), so only pieces that an opening, the outline or a discontinuity cut off a
+block are below it (tests/test_loose_blocks.py)."""
 
 
 @dataclass
@@ -167,4 +173,17 @@ def generate(scene: Scene) -> RockMass:
     starts = starts.tolist()
     pieces = [Piece(polys[n], work.material[i], work.excavation[i],
                     labels[starts[n]:starts[n + 1]]) for n, i in enumerate(keep)]
+    bond_small_blocks(pieces, min_block_area(scene), 1e2 * tol)
     return RockMass(pieces=pieces)
+
+
+def min_block_area(scene: Scene) -> float:
+    """``domain.min_block_area`` (m2), else :data:`MIN_BLOCK_FRACTION` times the smallest
+    joint-set spacing squared (0, no bonding, in a scene without joint sets)."""
+    dom = scene.domain
+    if dom is None:
+        return 0.0
+    if dom.min_block_area is not None:
+        return float(dom.min_block_area)
+    spacings = [j.spacing for j in scene.joints.values() if j.is_set]
+    return MIN_BLOCK_FRACTION * min(spacings) ** 2 if spacings else 0.0
