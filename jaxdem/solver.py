@@ -34,9 +34,10 @@ from jaxdem.core.sensitivities import STATE_FLOATS, preload_tangent, release_wit
 from jaxdem.core.state import OPEN, Loads, Model, State, grow_capacity
 from jaxdem.core.status import Status, global_imbalance
 from jaxdem.results import build_result, monitor_values
+from jaxdem.rockmass import small_block_area
 
-__all__ = ["COMPILE_TIMES", "Data", "Status", "gravity_material", "increment_count", "run",
-           "run_increment", "scene_data", "solve"]
+__all__ = ["COMPILE_TIMES", "Data", "Status", "gravity_material", "increment_count",
+           "loose_limit", "run", "run_increment", "scene_data", "solve"]
 
 
 @float64
@@ -141,8 +142,10 @@ def run(scene, model: Model, state: State, layout, data: Data, progress=None,
     relaxed = any(len(e.release) > 1 for e in scene.excavations)
     # Loose blocks (README, "Loose blocks"): a stage that ends in a mechanism of small
     # blocks falling free is run again from its start with them excavated in it.
-    limit = (loose_limit(scene, model, layout)
+    limit = (loose_limit(scene)
              if scene.solver.loose_blocks == "remove" and isinstance(d, _Driver) else None)
+    if limit is not None and limit <= 0.0:
+        limit = None
     for stage in plan:
         if d.status != Status.CONVERGED:
             break
@@ -220,21 +223,15 @@ def _run_stage(d, stage, layout, data, base, pending, releasing, loose, relaxed)
     return dict(support=support, releasing=releasing, water_y=y_new)
 
 
-LOOSE_FRACTION = 0.25
-"""Default ``solver.max_loose_volume``: this times the median area of the scene's free rock
-blocks outside the excavations (-): a fragment, not a block of the rock mass."""
-
-
-def loose_limit(scene, model: Model, layout) -> float:
-    """The largest group of blocks falling free that a stage removes and goes on (m3 per m of
-    tunnel, the area of the group): ``solver.max_loose_volume``, else :data:`LOOSE_FRACTION`
-    times the median area of the free rock blocks outside the excavations."""
+def loose_limit(scene) -> float:
+    """The largest group of blocks falling free that a stage removes and goes on (m3 per m
+    of tunnel, the group's area): ``solver.max_loose_volume``, else a small block of the
+    rock mass, :func:`jaxdem.rockmass.small_block_area` (0.1 x the smallest joint-set
+    spacing squared, the default of ``domain.min_block_area``; 0 without joint sets, where
+    a falling block is the answer, a key block, unless the scene says otherwise)."""
     if scene.solver.max_loose_volume is not None:
         return float(scene.solver.max_loose_volume)
-    nr = layout.n_rock
-    area = np.asarray(model.area)[:nr]
-    kept = np.asarray(model.free)[:nr] & np.array([e is None for e in layout.excavation])
-    return LOOSE_FRACTION * float(np.median(area[kept] if kept.any() else area))
+    return small_block_area(scene)
 
 
 def _release_groups(excavations: dict, layout, N: int) -> list:

@@ -41,6 +41,7 @@ from jaxdem.plots._layers import (
     draw_monitors,
     draw_water_table,
 )
+from jaxdem.plots._loose import draw_loose_blocks
 from jaxdem.results import Result
 
 _COMPRESSION = "tab:blue"
@@ -102,6 +103,7 @@ def plot_blocks(result: Result, path: str | Path, *, magnification: float | None
         )
         handles.append(Line2D([], [], color="0.78", lw=1.0, label="initial"))
     handles += draw_final_blocks(ax, initial, final, fixed, excavated, lw, "0.15")
+    handles += draw_loose_blocks(ax, initial, getattr(result, "loose_blocks", []), lw)
 
     walls = [np.asarray(w, dtype=float).reshape(2, 2) for w in geometry.get("walls", [])]
     if walls:

@@ -2,12 +2,14 @@
 
 A block, to the solver, is what joints bound: the pieces that intact-rock faces join
 (the cuts that make a region convex, an opening's ray cuts, mesh cells) move as one
-rock body until a bond breaks. Where the joint pattern cut by an opening or the outline
-leaves such a body smaller than ``domain.min_block_area``, it is merged into the
-neighbour with which it shares the longest joint: the faces they share become intact
+rock body until a bond breaks. Where the joint pattern cut by an opening leaves such a
+body on the opening's outline smaller than ``domain.min_block_area``, it is merged into
+the neighbour with which it shares the longest joint: the faces they share become intact
 rock (both sides), which is how the model represents a block that is not convex (convex
 pieces bonded by intact rock). Geometry is untouched: areas, vertices and the piece
-count stay as they are; only edge labels change.
+count stay as they are; only edge labels change. Bodies away from the openings (against
+the domain's outline, on a slope's face) are left as they are: they are part of the
+model's boundary or of the slope's own answer, and they do not fall into an opening.
 
 Host NumPy; works on the labelled pieces of :func:`jaxdem.rockmass.generate`.
 """
@@ -66,11 +68,13 @@ class _Bodies:
 
 
 def bond_small_blocks(pieces: list, min_area: float, quantum: float) -> int:
-    """Bond each rock body (pieces joined by intact faces) smaller than ``min_area`` (m2)
-    to the neighbouring body of the same material and excavation with which it shares the
-    most joint length, smallest first, until none is left below ``min_area`` that has such
-    a neighbour. Pieces are :class:`jaxdem.rockmass.Piece`; their ``edge_labels`` change
-    in place. Only faces that the two pieces share whole are considered.
+    """Bond each rock body (pieces joined by intact faces) on an excavation's outline and
+    smaller than ``min_area`` (m2) to the neighbouring body of the same material and
+    excavation with which it shares the most joint length, smallest first, until none is
+    left below ``min_area`` that has such a neighbour. Pieces are
+    :class:`jaxdem.rockmass.Piece`; their ``edge_labels`` change in place. Only faces
+    that the two pieces share whole are considered (an excavation's cut makes its two
+    sides alike).
 
     Returns:
       the number of bodies merged.
@@ -81,9 +85,11 @@ def bond_small_blocks(pieces: list, min_area: float, quantum: float) -> int:
     bodies = _Bodies(geometry.signed_areas(polys))
     faces = shared_faces(polys, quantum)
     joints = []
+    opening = np.zeros(len(pieces), bool)  # on an excavation's outline
     for i, k, j, m in faces:
         a, b = pieces[i], pieces[j]
         if a.excavation != b.excavation:
+            opening[[i, j]] = True
             continue
         kinds = (a.edge_labels[k][0], b.edge_labels[m][0])
         if kinds == ("intact", "intact"):
@@ -96,8 +102,8 @@ def bond_small_blocks(pieces: list, min_area: float, quantum: float) -> int:
     for f in joints:
         faces_of[f[0]].append(f)
         faces_of[f[2]].append(f)
-    heap = [(bodies.area[r], r) for r in {bodies.find(i) for i in range(len(pieces))}
-            if bodies.area[r] < min_area]
+    at_opening = {bodies.find(i) for i in np.nonzero(opening)[0].tolist()}
+    heap = [(bodies.area[r], r) for r in at_opening if bodies.area[r] < min_area]
     heapq.heapify(heap)
     merged = 0
     while heap:

@@ -125,14 +125,15 @@ class Domain:
     """The rock mass to generate: ``outline`` (n, 2) m, simple and counter-clockwise (may be
     non-convex), its ``material``, optional ``mesh_size`` (m) for intact-rock cells and
     ``mesh_max_size`` (m): cells grow from ``mesh_size`` at the excavations to this size,
-    and ``min_block_area`` (m2): smaller joint-bounded blocks are bonded to a neighbour."""
+    and ``min_block_area`` (m2): smaller joint-bounded blocks on an opening are bonded to a
+    neighbour."""
 
     outline: np.ndarray
     material: str
     mesh_size: float | None = None
     mesh_max_size: float | None = None
-    # Joint-bounded blocks smaller than this (m2) are bonded to a neighbour (README,
-    # "Loose blocks"); None: 0.1 x the smallest joint-set spacing squared.
+    # Joint-bounded blocks on an opening smaller than this (m2) are bonded to a neighbour
+    # (README, "Loose blocks"); None: 0.1 x the smallest joint-set spacing squared.
     min_block_area: float | None = None
 
 
@@ -250,7 +251,8 @@ class SolverSettings:
     linear_solver: str = "auto"
     # Loose blocks (README, "Loose blocks"): what a stage does when the only blocks that
     # move are small ones falling free ("remove" them and go on, or "stop"), and the
-    # largest such group, m3 per m (None: a quarter of the median rock block's area).
+    # largest such group, m3 per m (None: 0.1 x the smallest joint-set spacing squared,
+    # 0 without joint sets).
     loose_blocks: str = "remove"
     max_loose_volume: float | None = None
 
