@@ -151,15 +151,16 @@ def run(scene, model: Model, state: State, layout, data: Data, progress=None,
             break
         start = d.checkpoint() if limit is not None else None
         loose = np.zeros(N, bool)
-        while True:
+        for attempt in range(MAX_LOOSE_ROUNDS + 1):
             now = _run_stage(d, stage, layout, data, base, pending, releasing, loose, relaxed)
-            found = d.free_falling(limit) if limit is not None else None
-            if found is None:
+            found = (d.free_falling(limit) if limit is not None and attempt < MAX_LOOSE_ROUNDS
+                     else None)
+            if found is None or not (found & ~loose).any():
                 break
             found &= ~loose
             d.restore(start)
             d.loose += [dict(id=int(i), stage=stage["name"],
-                             volume=float(np.asarray(model.area)[i]),
+                             volume=float(np.asarray(d.model.area)[i]),
                              centroid=layout.centroids[i].tolist())
                         for i in np.nonzero(found)[0]]
             loose |= found
@@ -221,6 +222,11 @@ def _run_stage(d, stage, layout, data, base, pending, releasing, loose, relaxed)
                       released):
             break
     return dict(support=support, releasing=releasing, water_y=y_new)
+
+
+MAX_LOOSE_ROUNDS = 5
+"""Most times a stage is solved again without the loose blocks found (each time a whole
+stage): a rock mass that keeps ravelling after that is reported as a mechanism."""
 
 
 def loose_limit(scene) -> float:
