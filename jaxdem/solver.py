@@ -31,12 +31,13 @@ from jaxdem.core.compile_cache import COMPILE_TIMES, QUICK_WORK, compiled_progra
 from jaxdem.core.increment import increment, increment_tangent
 from jaxdem.core.loads import in_situ_preload, make_loads, release_forces_jit
 from jaxdem.core.sensitivities import STATE_FLOATS, preload_tangent, release_with_tangent
-from jaxdem.core.state import Loads, Model, State, grow_capacity
+from jaxdem.core.state import OPEN, Loads, Model, State, grow_capacity
 from jaxdem.core.status import Status, global_imbalance
 from jaxdem.results import build_result, monitor_values, stage_frame
+from jaxdem.rockmass import small_block_area
 
-__all__ = ["COMPILE_TIMES", "Data", "Status", "gravity_material", "increment_count", "run",
-           "run_increment", "scene_data", "solve"]
+__all__ = ["COMPILE_TIMES", "Data", "Status", "gravity_material", "increment_count",
+           "loose_limit", "run", "run_increment", "scene_data", "solve"]
 
 
 @float64
@@ -88,7 +89,7 @@ def solve(scene, set: dict | None = None, progress=None):
         frame(d)
     timing = dict(build_s=build_s, compile_s=d.compile_s, solve_s=d.solve_s)
     result = build_result(scene, d.model, layout, d.state, d.ref, d.info, d.records, d.history,
-                          timing, bolt_active=d.bolt_active)
+                          timing, bolt_active=d.bolt_active, loose=d.loose)
     result.geometry["stages"] = frames
     return result
 
@@ -156,53 +157,105 @@ def run(scene, model: Model, state: State, layout, data: Data, progress=None,
     # from ``Excavation.held``).
     releasing: list[dict] = []
     relaxed = any(len(e.release) > 1 for e in scene.excavations)
+    # Loose blocks (README, "Loose blocks"): a stage that ends in a mechanism of small
+    # blocks falling free is run again from its start with them excavated in it.
+    limit = (loose_limit(scene)
+             if scene.solver.loose_blocks == "remove" and isinstance(d, _Driver) else None)
+    if limit is not None and limit <= 0.0:
+        limit = None
     for index, stage in enumerate(plan, 1):
         if d.status != Status.CONVERGED:
             break
         d.stage_index = index
-        removed = np.zeros(N, bool)
-        removed[:layout.n_rock] = [e is not None and e in stage["excavations"]
-                                   for e in layout.excavation]
-        for names, mask, held in _release_groups(stage["excavations"], layout, N):
-            load = d.release(mask)
-            if not np.array_equal(mask, removed):
-                # Several schedules in one stage: what these blocks pushed on the blocks
-                # removed with them is on no block left.
-                load = np.where((removed & ~mask)[None, :, None], 0.0, load)
-            releasing.append(dict(names=names, load=load, before=1.0, held=held))
-        if removed.any():
-            alive = np.asarray(d.state.alive) & ~removed
-            d.state = dataclasses.replace(d.state, alive=jnp.asarray(alive))
-        for b, bs in enumerate(layout.bolt_stages):
-            if bs == stage["name"] or (bs is None and stage["first"]):
-                d.bolt_active[b] = True
-        support = sum((f for sp, f in zip(layout.supports, data.supports, strict=True)
-                       if sp["stage"] == stage["name"] or (sp["stage"] is None and stage["first"])),
-                      zero)
-        y_old = d.water_y
-        y_new = data.stage_water.get(stage["name"], y_old)
-        n = stage["load_steps"] or layout.load_steps
-        for k in range(1, n + 1):
-            lam = k / n
-            # What is still held of each release, from ``before`` down to ``held[0]``
-            # (1 - lam of it for a release in one stage).
-            still = [r["before"] - lam * (r["before"] - r["held"][0]) for r in releasing]
-            parts = [h * r["load"] for h, r in zip(still, releasing, strict=True)]
-            release = sum(parts[1:], parts[0]) if parts else zero
-            force = base + release + lam * (pending + support)
-            # (rounded to 12 digits for the record: 0.08, not 0.08000000000000007)
-            released = ({name: round(1.0 - h, 12) for h, r in zip(still, releasing, strict=True)
-                         for name in r["names"]} if relaxed else None)
-            if not d.step(stage["name"], k, n, d.loads(force, (1 - lam) * y_old + lam * y_new),
-                          released):
+        start = d.checkpoint() if limit is not None else None
+        loose = np.zeros(N, bool)
+        for attempt in range(MAX_LOOSE_ROUNDS + 1):
+            now = _run_stage(d, stage, layout, data, base, pending, releasing, loose, relaxed)
+            found = (d.free_falling(limit) if limit is not None and attempt < MAX_LOOSE_ROUNDS
+                     else None)
+            if found is None or not (found & ~loose).any():
                 break
-        base, pending = base + pending + support, zero
-        releasing = [dict(r, before=r["held"][0], held=r["held"][1:]) for r in releasing
+            found &= ~loose
+            d.restore(start)
+            d.loose += [dict(id=int(i), stage=stage["name"],
+                             volume=float(np.asarray(d.model.area)[i]),
+                             centroid=layout.centroids[i].tolist())
+                        for i in np.nonzero(found)[0]]
+            loose |= found
+        base, pending = base + pending + now["support"], zero
+        releasing = [dict(r, before=r["held"][0], held=r["held"][1:]) for r in now["releasing"]
                      if len(r["held"]) > 1]
-        d.water_y = y_new
+        d.water_y = now["water_y"]
         if stage_end is not None and d.status == Status.CONVERGED:
             stage_end(d, stage["name"])
     return d
+
+
+def _run_stage(d, stage, layout, data, base, pending, releasing, loose, relaxed) -> dict:
+    """The increments of one stage: it removes its excavations (and the ``loose`` (N,)
+    blocks, all released in this stage), installs its bolts, ramps its supports and moves
+    the water table. Returns the stage's ``support`` load, the ``releasing`` list of this
+    stage (those before it and its own) and its water table ``water_y``."""
+    N, D = d.model.n_blocks, d.model.ndof
+    zero = np.zeros((1 + data.p, N, D))
+    releasing = list(releasing)
+    removed = np.zeros(N, bool)
+    removed[:layout.n_rock] = [e is not None and e in stage["excavations"]
+                               for e in layout.excavation]
+    groups = _release_groups(stage["excavations"], layout, N)
+    if loose.any():
+        groups.append(([], loose, (0.0,)))
+    removed |= loose
+    for names, mask, held in groups:
+        load = d.release(mask)
+        if not np.array_equal(mask, removed):
+            # Several schedules in one stage: what these blocks pushed on the blocks
+            # removed with them is on no block left.
+            load = np.where((removed & ~mask)[None, :, None], 0.0, load)
+        releasing.append(dict(names=names, load=load, before=1.0, held=held))
+    if removed.any():
+        alive = np.asarray(d.state.alive) & ~removed
+        d.state = dataclasses.replace(d.state, alive=jnp.asarray(alive))
+    for b, bs in enumerate(layout.bolt_stages):
+        if bs == stage["name"] or (bs is None and stage["first"]):
+            d.bolt_active[b] = True
+    support = sum((f for sp, f in zip(layout.supports, data.supports, strict=True)
+                   if sp["stage"] == stage["name"] or (sp["stage"] is None and stage["first"])),
+                  zero)
+    y_old = d.water_y
+    y_new = data.stage_water.get(stage["name"], y_old)
+    n = stage["load_steps"] or layout.load_steps
+    for k in range(1, n + 1):
+        lam = k / n
+        # What is still held of each release, from ``before`` down to ``held[0]``
+        # (1 - lam of it for a release in one stage).
+        still = [r["before"] - lam * (r["before"] - r["held"][0]) for r in releasing]
+        parts = [h * r["load"] for h, r in zip(still, releasing, strict=True)]
+        release = sum(parts[1:], parts[0]) if parts else zero
+        force = base + release + lam * (pending + support)
+        # (rounded to 12 digits for the record: 0.08, not 0.08000000000000007)
+        released = ({name: round(1.0 - h, 12) for h, r in zip(still, releasing, strict=True)
+                     for name in r["names"]} if relaxed else None)
+        if not d.step(stage["name"], k, n, d.loads(force, (1 - lam) * y_old + lam * y_new),
+                      released):
+            break
+    return dict(support=support, releasing=releasing, water_y=y_new)
+
+
+MAX_LOOSE_ROUNDS = 5
+"""Most times a stage is solved again without the loose blocks found (each time a whole
+stage): a rock mass that keeps ravelling after that is reported as a mechanism."""
+
+
+def loose_limit(scene) -> float:
+    """The largest group of blocks falling free that a stage removes and goes on (m3 per m
+    of tunnel, the group's area): ``solver.max_loose_volume``, else a small block of the
+    rock mass, :func:`jaxdem.rockmass.small_block_area` (0.1 x the smallest joint-set
+    spacing squared, the default of ``domain.min_block_area``; 0 without joint sets, where
+    a falling block is the answer, a key block, unless the scene says otherwise)."""
+    if scene.solver.max_loose_volume is not None:
+        return float(scene.solver.max_loose_volume)
+    return small_block_area(scene)
 
 
 def _release_groups(excavations: dict, layout, N: int) -> list:
@@ -344,6 +397,7 @@ class _Driver:
         self.water_y = data.water_y
         self.approximate = False
         self.quick = quick  # programs compiled quick (compile_cache.QUICK_COMPILER_OPTIONS)
+        self.loose: list[dict] = []  # blocks removed as loose: id, stage, volume, centroid
         p = data.p
         self.dstate = None if p == 0 else {
             k: jnp.zeros((p,) + getattr(state, k).shape, getattr(state, k).dtype)
@@ -411,6 +465,56 @@ class _Driver:
                                residual=rec["residual"], stage_index=self.stage_index,
                                n_stages=self.n_stages))
         return self.status == Status.CONVERGED
+
+    def checkpoint(self) -> dict:
+        """What a stage changes in the driver, to run it again (:meth:`restore`)."""
+        return dict(state=self.state, dstate=self.dstate, info=self.info, status=self.status,
+                    records=len(self.records), history=len(self.history),
+                    bolt_active=self.bolt_active.copy(), approximate=self.approximate)
+
+    def restore(self, saved: dict) -> None:
+        """Back to a :meth:`checkpoint` (the model keeps any capacity grown since)."""
+        self.state, self.dstate, self.info = saved["state"], saved["dstate"], saved["info"]
+        self.status, self.approximate = saved["status"], saved["approximate"]
+        del self.records[saved["records"]:], self.history[saved["history"]:]
+        self.bolt_active = saved["bolt_active"].copy()
+
+    def free_falling(self, limit: float):
+        """After a mechanism: the (N,) mask of the moving blocks if they all fall free and
+        are small, else None.
+
+        Moving: travelled more than a tenth of ``max_displacement`` in the increment (as
+        ``Result.moving_blocks``). Free: no closed contact (stuck or slipping) joins a
+        moving block to one that is not moving, or to a boundary. Small: each group of
+        moving blocks in closed contact with each other has an area of at most ``limit``
+        (m2, m3 per m of tunnel).
+        """
+        if self.status != Status.MECHANISM:
+            return None
+        nr, N = self.layout.n_rock, self.model.n_blocks
+        moving = np.zeros(N, bool)
+        moving[:nr] = np.asarray(self.info["travel"])[:nr] > 0.1 * float(
+            self.model.max_displacement)
+        moving &= np.asarray(self.state.alive)
+        if not moving.any():
+            return None
+        snap = self.info["snapshot"]
+        closed = (np.asarray(snap["active"]) & (np.asarray(snap["state"]) != OPEN)).reshape(-1)
+        a = np.asarray(snap["a"]).reshape(-1)[closed]
+        b = np.asarray(snap["b"]).reshape(-1)[closed]
+        if np.any(moving[a] != moving[b]):
+            return None  # a contact in the way: the blocks slide or rotate on the rock
+        group = np.arange(N)
+        for _ in range(N):  # label propagation: each block takes its contacts' least label
+            new = group.copy()
+            np.minimum.at(new, a, group[b])
+            np.minimum.at(new, b, group[a])
+            if np.array_equal(new, group):
+                break
+            group = new
+        area = np.bincount(group[moving], weights=np.asarray(self.model.area)[moving],
+                           minlength=N)
+        return moving if area.max() <= limit else None
 
     def release(self, removed):
         """Forces (1 + p, N, D) of the blocks being removed on the rest, from the last contacts."""

@@ -21,6 +21,7 @@ solve; each module imports only those above it):
 
 - :mod:`jaxdem.plots._canvas`: figure, save, axes, label placement, round scales;
 - :mod:`jaxdem.plots._layers`: outlines, contacts, arrows, bolts, monitors, water table;
+- :mod:`jaxdem.plots._loose`: the loose blocks removed, on ``blocks.png``;
 - :mod:`jaxdem.plots._model`: ``blocks.png``, ``stresses.png``;
 - :mod:`jaxdem.plots._monitors`: ``monitors.png``, ``sections.png``;
 - :mod:`jaxdem.plots._scene`: ``check.png``;

@@ -50,6 +50,7 @@ from jaxdem.plots._layers import (
     draw_supports,
     draw_water_table,
 )
+from jaxdem.plots._loose import draw_loose_blocks
 from jaxdem.results import Result
 
 _COMPRESSION = "tab:blue"
@@ -227,6 +228,7 @@ class _ModelLayers:
             handles.append(Line2D([], [], color="0.78", lw=1.0, label="initial"))
         handles += draw_final_blocks(ax, self.initial, self.final, self.fixed, self.excavated,
                                      lw, "0.15")
+        handles += draw_loose_blocks(ax, self.initial, getattr(result, "loose_blocks", []), lw)
         if self.walls:
             ax.add_collection(LineCollection(self.walls, colors="k", linewidths=3.0, zorder=3))
             handles.append(Line2D([], [], color="k", lw=3.0, label="wall"))

@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from jaxdem import geometry
+from jaxdem.rockmass._bonding import bond_small_blocks
 from jaxdem.rockmass._cutting import (
     SLIVER_RATIO,
     Work,
@@ -30,10 +31,15 @@ from jaxdem.rockmass._traces import (
 )
 from jaxdem.scene import Scene, SceneError
 
-__all__ = ["Piece", "RockMass", "generate"]
+__all__ = ["Piece", "RockMass", "generate", "min_block_area", "small_block_area"]
 
 SNAP = 1e-2
 """Trace ends closer than this times the smallest length scale to a corner snap to it (-)."""
+MIN_BLOCK_FRACTION = 0.1
+"""Default ``domain.min_block_area``: this times the smallest joint-set spacing squared (-).
+A block of the regular pattern of two sets is at least spacing^2 (s1 s2 / sin of the angle
+between them), so only the pieces that an opening cuts off a block are below it
+(tests/test_loose_blocks.py)."""
 
 
 @dataclass
@@ -167,4 +173,23 @@ def generate(scene: Scene) -> RockMass:
     starts = starts.tolist()
     pieces = [Piece(polys[n], work.material[i], work.excavation[i],
                     labels[starts[n]:starts[n + 1]]) for n, i in enumerate(keep)]
+    bond_small_blocks(pieces, min_block_area(scene), 1e2 * tol)
     return RockMass(pieces=pieces)
+
+
+def min_block_area(scene: Scene) -> float:
+    """``domain.min_block_area`` (m2), else :func:`small_block_area`."""
+    dom = scene.domain
+    if dom is not None and dom.min_block_area is not None:
+        return float(dom.min_block_area)
+    return small_block_area(scene)
+
+
+def small_block_area(scene: Scene) -> float:
+    """A small block of the scene's rock mass (m2): :data:`MIN_BLOCK_FRACTION` times the
+    smallest joint-set spacing squared; 0 in a scene without a domain or joint sets. The
+    default of ``domain.min_block_area`` and of ``solver.max_loose_volume``."""
+    spacings = [j.spacing for j in scene.joints.values() if j.is_set]
+    if scene.domain is None or not spacings:
+        return 0.0
+    return MIN_BLOCK_FRACTION * min(spacings) ** 2

@@ -25,11 +25,11 @@ from jaxdem.scene._schema import IN_SITU_FIELDS, MATERIAL_FIELDS
 # Scalar numeric fields that an override may add when the file leaves them out.
 _OPTIONAL_NUMERIC = {
     "solver": ("load_steps", "tolerance", "max_iterations", "max_displacement")
-    + ("regularization", "step_length"),
+    + ("regularization", "step_length", "max_loose_volume"),
     "materials": MATERIAL_FIELDS,
     "joints": ("kn", "ks", "cohesion", "friction_deg", "tensile_strength")
     + ("dip_deg", "spacing", "persistence", "gap"),
-    "domain": ("mesh_size", "mesh_max_size"),
+    "domain": ("mesh_size", "mesh_max_size", "min_block_area"),
     "in_situ": IN_SITU_FIELDS[1:],
     "water": ("unit_weight",),
     "bolts": ("spacing", "compression"),

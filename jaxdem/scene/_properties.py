@@ -27,6 +27,7 @@ from jaxdem.scene._schema import (
     DTYPES,
     JOINT_FIELDS,
     LINEAR_SOLVERS,
+    LOOSE_BLOCKS,
     MATERIAL_FIELDS,
     SOLVER_FIELDS,
     Joint,
@@ -63,6 +64,9 @@ def parse_solver(data: dict) -> SolverSettings:
         step_length=read_field(t, "step_length", "solver", lo=0, lo_open=True),
         linear_solver=(read_string(t["linear_solver"], "solver.linear_solver", LINEAR_SOLVERS)
                        if "linear_solver" in t else d.linear_solver),
+        loose_blocks=(read_string(t["loose_blocks"], "solver.loose_blocks", LOOSE_BLOCKS)
+                      if "loose_blocks" in t else d.loose_blocks),
+        max_loose_volume=read_field(t, "max_loose_volume", "solver", lo=0),
     )
 
 

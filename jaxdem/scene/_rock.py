@@ -152,7 +152,9 @@ def parse_domain(data: dict, materials: dict[str, Material]) -> Domain | None:
         if grown < mesh:
             raise SceneError("domain.mesh_max_size",
                              f"smaller than domain.mesh_size ({grown:g} m < {mesh:g} m)")
-    return Domain(outline=outline, material=mat, mesh_size=mesh, mesh_max_size=grown)
+    merge = read_field(t, "min_block_area", "domain", lo=0)
+    return Domain(outline=outline, material=mat, mesh_size=mesh, mesh_max_size=grown,
+                  min_block_area=merge)
 
 
 def parse_zones(data: dict, materials: dict[str, Material], domain: Domain | None,

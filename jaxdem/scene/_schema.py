@@ -124,12 +124,17 @@ class Monitor:
 class Domain:
     """The rock mass to generate: ``outline`` (n, 2) m, simple and counter-clockwise (may be
     non-convex), its ``material``, optional ``mesh_size`` (m) for intact-rock cells and
-    ``mesh_max_size`` (m): cells grow from ``mesh_size`` at the excavations to this size."""
+    ``mesh_max_size`` (m): cells grow from ``mesh_size`` at the excavations to this size,
+    and ``min_block_area`` (m2): smaller joint-bounded blocks on an opening are bonded to a
+    neighbour."""
 
     outline: np.ndarray
     material: str
     mesh_size: float | None = None
     mesh_max_size: float | None = None
+    # Joint-bounded blocks on an opening smaller than this (m2) are bonded to a neighbour
+    # (README, "Loose blocks"); None: 0.1 x the smallest joint-set spacing squared.
+    min_block_area: float | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -244,6 +249,12 @@ class SolverSettings:
     regularization: float = 1e-6
     step_length: float | None = None
     linear_solver: str = "auto"
+    # Loose blocks (README, "Loose blocks"): what a stage does when the only blocks that
+    # move are small ones falling free ("remove" them and go on, or "stop"), and the
+    # largest such group, m3 per m (None: 0.1 x the smallest joint-set spacing squared,
+    # 0 without joint sets).
+    loose_blocks: str = "remove"
+    max_loose_volume: float | None = None
 
 
 SUPPORTED_SECTIONS = (
@@ -275,7 +286,10 @@ SOLVER_FIELDS = (
     "regularization",
     "step_length",
     "linear_solver",
+    "loose_blocks",
+    "max_loose_volume",
 )
+LOOSE_BLOCKS = ("remove", "stop")
 MATERIAL_FIELDS = ("E", "nu", "unit_weight", "cohesion", "friction_deg", "tensile_strength")
 JOINT_FIELDS = (
     "kn",
@@ -295,7 +309,7 @@ BLOCK_FIELDS = ("vertices", "material", "fixed", "joint")
 DISCONTINUITY_FIELDS = ("from", "to", "joint")
 BOUNDARY_FIELDS = ("side", "from", "to", "condition", "traction", "stage")
 MONITOR_FIELDS = ("name", "point", "from", "to")
-DOMAIN_FIELDS = ("outline", "material", "mesh_size", "mesh_max_size")
+DOMAIN_FIELDS = ("outline", "material", "mesh_size", "mesh_max_size", "min_block_area")
 ZONE_FIELDS = ("name", "vertices", "material")
 EXCAVATION_FIELDS = ("name", "shape", "center", "radius", "width", "height", "vertices", "stage",
                      "release")
