@@ -302,6 +302,7 @@ def _increment_fn(devices: tuple):
     return jax.jit(sharded)
 
 
+@on_disk("batch_preload")
 @functools.partial(jax.jit, static_argnames=("mode",))
 def _preload_lanes(model, fields, state, loads, args, mode):
     def one(fl, st, ld, a):
@@ -419,8 +420,10 @@ class _BatchDriver:
                                                      data.k0))
         loads, _ = self.loads(base)
         while True:
-            st, overflow = _preload_lanes(self.model, self.fields, self.state, loads, args,
-                                          mode=scene.in_situ.mode)
+            fn, dt = compiled_program(_preload_lanes, self.model, self.fields, self.state,
+                                      loads, args, mode=scene.in_situ.mode, quick=self.quick)
+            self.compile_s += dt
+            st, overflow = fn(self.model, self.fields, self.state, loads, args)
             if not bool(np.asarray(overflow).any()):
                 break
             self.state = _grow(self.state, model_mod.bucket(2 * self.state.capacity))

@@ -18,6 +18,7 @@ import json
 import math
 import os
 import sys
+import threading
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -298,6 +299,8 @@ def cmd_grc(args: argparse.Namespace) -> int:
     print(f"ground reaction curve of {excavation!r}: {plural(args.levels, 'level')} from "
           f"{checked['start']:.4g} to 0 kPa in one batch (p0 = {checked['p0']:.4g} kPa, {how})",
           flush=True)
+    # matplotlib's import and fonts beside the solve, which runs without Python's lock.
+    threading.Thread(target=_prepare_figures, daemon=True, name="jaxdem-figures").start()
     bar = SampleBar()
     try:
         with bar:
