@@ -11,6 +11,13 @@ solves', over every level that converged and every monitor, relative to the
 largest monitor value; the statuses must agree level by level.
 
     python benchmarks/bench_grc.py [--levels 16] [--chunk C] [--scene jaxdem/data/demo.toml]
+    python benchmarks/bench_grc.py --commands [--repeats 3]
+
+``--commands`` times what a user types instead (issue 31's comparison): ``python -m
+jaxdem grc SCENE --levels K`` (its grc.json and grc.png) against K ``python -m jaxdem run
+SCENE --set supports.I.pressure=P`` at the curve's pressures, each with its figures (the
+default) and with ``--no-figures``; all warm (one run of each first), medians of
+``--repeats``, in one process so that the ratios come from the same minutes.
 """
 
 from __future__ import annotations
@@ -31,7 +38,13 @@ def main() -> None:
     ap.add_argument("--levels", type=int, default=16)
     ap.add_argument("--chunk", type=int, default=None, help="levels per batch (default: "
                     "solve_batch's)")
+    ap.add_argument("--commands", action="store_true",
+                    help="time the grc command against K run commands (see the docstring)")
+    ap.add_argument("--repeats", type=int, default=3)
     args = ap.parse_args()
+    if args.commands:
+        commands(args)
+        return
     import numpy as np
 
     import jaxdem
@@ -96,6 +109,54 @@ def main() -> None:
     print(f"| {args.levels} | {t_batch:.1f} | {tm['build_s']:.1f} / {tm['compile_s']:.1f} / "
           f"{tm['solve_s']:.1f} | {t_loop:.1f} | **{t_loop / t_batch:.2f}** | "
           f"{sum(same)}/{len(same)} | {worst:.2e} | {worst / scale:.1e} |")
+
+
+def commands(args) -> None:
+    """The grc command against K single run commands, warm (see the module docstring)."""
+    import json
+    import statistics
+    import subprocess
+    import sys
+    import tempfile
+
+    out = Path(tempfile.mkdtemp(prefix="bench-grc-"))
+    jaxdem = [sys.executable, "-m", "jaxdem"]
+    grc = [*jaxdem, "grc", args.scene, "--excavation", args.excavation, "--levels",
+           str(args.levels), "--out", str(out / "grc")]
+
+    def timed(cmd) -> float:
+        t = time.perf_counter()
+        subprocess.run(cmd, check=True, capture_output=True, cwd=ROOT)
+        return time.perf_counter() - t
+
+    timed(grc)  # warm-up: stores its programs
+    curve = json.loads((out / "grc" / "grc.json").read_text())
+    path, pressures = curve["parameter"], curve["pressure"]
+
+    def singles(figures: bool) -> float:
+        extra = [] if figures else ["--no-figures"]
+        return sum(timed([*jaxdem, "run", args.scene, "--set", f"{path}={p!r}", "--out",
+                          str(out / f"run{i}"), *extra]) for i, p in enumerate(pressures))
+
+    timed([*jaxdem, "run", args.scene, "--set", f"{path}={pressures[0]!r}", "--out",
+           str(out / "run0")])  # warm-up
+    rows = {"grc": [], "runs": [], "runs, --no-figures": []}
+    for _ in range(args.repeats):
+        rows["grc"].append(timed(grc))
+        rows["runs"].append(singles(True))
+        rows["runs, --no-figures"].append(singles(False))
+    g = statistics.median(rows["grc"])
+    print(f"machine: {platform.machine()}, {os.cpu_count()} cores; load average "
+          f"{os.getloadavg()[0]:.1f}; {args.levels} levels of {args.scene}, warm, medians of "
+          f"{args.repeats}")
+    print()
+    print("| command | wall s (median) | runs / grc |")
+    print("|---|---:|---:|")
+    print(f"| `jaxdem grc --levels {args.levels}` | {g:.1f} | |")
+    for name in ("runs", "runs, --no-figures"):
+        m = statistics.median(rows[name])
+        print(f"| {args.levels} x `jaxdem run --set {path}=P`"
+              f"{' --no-figures' if 'no-figures' in name else ''} | {m:.1f} | **{m / g:.2f}** |")
 
 
 if __name__ == "__main__":
