@@ -299,7 +299,7 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ex, ey, cy, width, not_dup):
     c_in = _dot(sg(t_in)[:, :, None, :], sg(ty)[:, None, :, :])
     par_out = c_out < -model.cos_parallel
     par_in = c_in < -model.cos_parallel
-    # A vertex on or inside Y (within span_tol of its boundary) bears only on a
+    # A vertex on or inside Y (within touch_tol of its boundary) bears only on a
     # face that X, near the vertex, lies outside of: one of its own faces leaves
     # the vertex across the face's line, by more than the parallel tolerance. A
     # face whose line X's corner lies along or within (the face of a block on the
@@ -307,12 +307,15 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ex, ey, cy, width, not_dup):
     # joint past the point where that trace goes on between two blocks below) is
     # never its contact: its gap is zero however deep the corner has gone in
     # through Y's other face. Without such a face (a corner flatter than the
-    # tolerance), and for a vertex outside Y, every face.
+    # tolerance), and for a vertex outside Y, every face: a vertex just outside a
+    # face with its block's faces pointing into the face's line is an open slot on it
+    # as before. Where the slab turns a little, one of the two corners is inside the
+    # other block, and that side sees the overlap.
     sin_par = jnp.sqrt(jnp.maximum(1.0 - model.cos_parallel**2, 0.0))
     leaves = jnp.maximum(_dot(sg(tx)[:, :, None, :], sg(ny)[:, None, :, :]),
                          -_dot(sg(t_in)[:, :, None, :], sg(ny)[:, None, :, :]))
     entry = emy[:, None, :] & (leaves > sin_par)
-    on = jnp.any(entry, axis=-1) & (dmax <= model.span_tol)
+    on = jnp.any(entry, axis=-1) & (dmax <= model.touch_tol)
     entry = entry | ~on[..., None]
     d_entry = jnp.where(entry, d, -jnp.inf)
     # A vertex that overlaps near a corner is on the face anti-parallel to its own.
@@ -340,9 +343,16 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ex, ey, cy, width, not_dup):
     L_e = _take(ly, e, axis=1)
     po = take(par_out)
     pi = take(par_in)
+    # A corner that has gone past the end of Y's face it was sliding along bears on
+    # the face it crossed from there on, at its end too: the end of a face is
+    # where two faces meet end to end at a node, but this corner came along the
+    # other face's line, not to the node.
+    s_v = _dot(sg(xv) - sg(q), sg(t))
+    crossed = on & (take(d) < dmax - model.touch_tol)
+    inside = ((s_v > model.span_tol) & (s_v < L_e - model.span_tol)) | crossed
     g = _slot_geometry(model, xv, _take(xv, nxt[..., None], axis=1),
                        _take(xv, prev[..., None], axis=1), cx[:, None, :], cy[:, None, :], q, n,
-                       t, L_e, lx, l_in, po, pi)
+                       t, L_e, lx, l_in, po, pi, inside)
     # A vertex a little past the end of a face still bears on it: blocks whose
     # corners coincide (a regular grid) shift by joint shear, and the contact
     # point must not hop to the other block's vertex and lose its history.

@@ -101,7 +101,8 @@ class Progress(NamedTuple):
 
     ``state`` the blocks and springs now; ``status`` the outcome's code (-1 while it goes
     on: :class:`jaxdem.core.status.Status`); ``substeps``, ``iterations`` (Newton's, summed)
-    and ``stuck`` (sub-steps in a row that neither converged nor moved a step length);
+    and ``stuck`` (sub-steps in a row that neither converged, nor moved a step length, nor
+    halved the residual);
     ``travel`` (N,) each block's travel so far; ``residual`` the last sub-step's relative
     residual; ``balance`` and ``snapshot`` those of the last sub-step
     (:func:`jaxdem.core._substep.commit_substep`); ``pairs_needed`` and ``cell_full``
@@ -148,7 +149,11 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
         overflow = (need["pairs"] > state.capacity) | need["cell_full"]
         travel = c.travel + block_travel(model, du)
         small = jnp.max(block_travel(model, du)) <= model.touch_tol
-        stuck = jnp.where(newton.converged | newton.clipped, 0, c.stuck + 1)
+        # A sub-step cut by the iteration limit that halved the residual of the one
+        # before is progress too (a block pressed into a corner contact that has just
+        # closed settles over a few sub-steps), not stuck.
+        progress = newton.converged | newton.clipped | (newton.rnorm < 0.5 * c.residual)
+        stuck = jnp.where(progress, 0, c.stuck + 1)
         substeps = c.substeps + 1
         # The first outcome that holds ends the increment; -1 goes on. An
         # equilibrium counts only if it is admissible (no overlap, no law broken,
