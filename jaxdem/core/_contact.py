@@ -299,23 +299,27 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ex, ey, cy, width, not_dup):
     c_in = _dot(sg(t_in)[:, :, None, :], sg(ty)[:, None, :, :])
     par_out = c_out < -model.cos_parallel
     par_in = c_in < -model.cos_parallel
-    # A vertex on or inside Y (within touch_tol of its boundary) bears only on a
-    # face that X, near the vertex, lies outside of: one of its own faces leaves
-    # the vertex across the face's line, by more than the parallel tolerance. A
-    # face whose line X's corner lies along or within (the face of a block on the
-    # same side of a joint trace as X: a slab that slides along a daylighting
-    # joint past the point where that trace goes on between two blocks below) is
-    # never its contact: its gap is zero however deep the corner has gone in
-    # through Y's other face. Without such a face (a corner flatter than the
-    # tolerance), and for a vertex outside Y, every face: a vertex just outside a
-    # face with its block's faces pointing into the face's line is an open slot on it
-    # as before. Where the slab turns a little, one of the two corners is inside the
-    # other block, and that side sees the overlap.
+    # A vertex on or inside Y (within touch_tol of its nearest face, and within that
+    # face's span, not at a node) bears only on a face that X, near the vertex, lies
+    # outside of: one of its own faces is anti-parallel to it or leaves the vertex
+    # across its line by more than the parallel tolerance. A face whose line X's
+    # corner lies along or within (the face of a block on the same side of a joint
+    # trace as X: a slab that slides along a daylighting joint past the point where
+    # that trace goes on between two blocks below) is never its contact: its gap is
+    # zero however deep the corner has gone in through Y's other face. Without such
+    # a face, at a node and for a vertex outside Y, every face: a vertex just outside
+    # a face with its block's faces pointing into the face's line is an open slot on
+    # it as before. Where the slab turns a little, one of the two corners is inside
+    # the other block, and that side sees the overlap.
     sin_par = jnp.sqrt(jnp.maximum(1.0 - model.cos_parallel**2, 0.0))
     leaves = jnp.maximum(_dot(sg(tx)[:, :, None, :], sg(ny)[:, None, :, :]),
                          -_dot(sg(t_in)[:, :, None, :], sg(ny)[:, None, :, :]))
-    entry = emy[:, None, :] & (leaves > sin_par)
-    on = jnp.any(entry, axis=-1) & (dmax <= model.touch_tol)
+    entry = emy[:, None, :] & ((leaves > sin_par) | par_out | par_in)
+    nearest = jnp.argmax(d, axis=-1)[..., None]
+    s_near = _dot(sg(xv) - _take(sg(q0), nearest, axis=1), _take(sg(ty), nearest, axis=1))
+    l_near = _take(ly, nearest[..., 0], axis=1)
+    on = (jnp.any(entry, axis=-1) & (dmax <= model.touch_tol)
+          & (s_near > model.span_tol) & (s_near < l_near - model.span_tol))
     entry = entry | ~on[..., None]
     d_entry = jnp.where(entry, d, -jnp.inf)
     # A vertex that overlaps near a corner is on the face anti-parallel to its own.
