@@ -129,7 +129,7 @@ def test_staged_tunnel_converges_with_its_tip_in_view():
     """examples/staged_tunnel.toml: in the last step of the heading, block 468's corner
     slides along a joint trace into block 469 (the same geometry as the slab, 0.039 m
     deep once, unseen before). Seen now, it settles over a few sub-steps that each
-    halve the residual: the answer converges, admissible, and no two blocks overlap
+    cut the residual tenfold: the answer converges, admissible, and no two blocks overlap
     deeper than ``admissibility.overlap`` says (walls are not in the final polygons)."""
     root = Path(__file__).resolve().parents[2]
     r = jaxdem.solve(jaxdem.load_scene(root / "examples" / "staged_tunnel.toml"))
