@@ -40,6 +40,7 @@ __all__ = [
     "is_convex",
     "near_box_pairs",
     "overlap_area",
+    "overlap_depths",
     "point_in_polygon",
     "point_on_segment",
     "points_in_polygons",
@@ -279,6 +280,45 @@ def overlap_area(a: np.ndarray, b: np.ndarray) -> float:
     if len(inter) < 3:
         return 0.0
     return max(0.0, signed_area(inter))
+
+
+def overlap_depths(polys: Sequence[np.ndarray], i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """Interpenetration depth (m) of the pairs ``(i[k], j[k])`` of convex CCW polygons.
+
+    The separating-axis depth: over the face normals of both polygons, the least
+    overlap of their projections, which is the shortest translation that parts them
+    (0 where they are apart or only touch). A corner sunk into a face gives its
+    depth below the face, two faces pressed together their closure, and a polygon
+    that has passed into another along a shared line (where every vertex lies on
+    the other's boundary) the depth it has gone in. Vectorised over the pairs, in
+    slices of about ``_PAIR_SLICE`` vertex-axis products.
+    """
+    i, j = np.asarray(i, np.int64), np.asarray(j, np.int64)
+    out = np.zeros(len(i))
+    if len(i) == 0:
+        return out
+    groups = polygon_groups(polys)
+    n = max(g[0] for g in groups)
+    # Every polygon padded to n vertices by repeating its first (padded edges have no
+    # length and give no axis).
+    verts = np.zeros((len(polys), n, 2))
+    for m, idx, v in groups:
+        verts[idx, :m] = v
+        verts[idx, m:] = v[:, :1]
+    edge = _next_many(verts) - verts
+    length = np.hypot(edge[..., 0], edge[..., 1])
+    normal = np.stack([edge[..., 1], -edge[..., 0]], axis=-1) / np.where(length > 0, length,
+                                                                          1.0)[..., None]
+    step = max(1, _PAIR_SLICE // (4 * n * n))
+    for s in range(0, len(i), step):
+        a, b = i[s:s + step], j[s:s + step]
+        axes = np.concatenate([normal[a], normal[b]], axis=1)  # (p, 2n, 2)
+        valid = np.concatenate([length[a], length[b]], axis=1) > 0
+        pa = np.einsum("pvk,pak->pav", verts[a], axes)  # (p, 2n, n)
+        pb = np.einsum("pvk,pak->pav", verts[b], axes)
+        pen = np.minimum(pa.max(-1) - pb.min(-1), pb.max(-1) - pa.min(-1))
+        out[s:s + step] = np.maximum(np.min(np.where(valid, pen, np.inf), axis=1), 0.0)
+    return out
 
 
 def bbox(v: np.ndarray) -> tuple[float, float, float, float]:

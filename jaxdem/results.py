@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxdem import geometry
 from jaxdem.core.kinematics import bolt_geometry, rotate_vectors, strain_times
 from jaxdem.core.state import OPEN, SLIP
 from jaxdem.core.status import IMBALANCE_FACTOR, LARGE_SLIP, OVERLAP_TOL, STRENGTH_TOL, Status
@@ -71,8 +72,9 @@ class Result:
         free blocks) and ``imbalance``: |applied + reaction| over the larger of the
         summed load and reaction magnitudes.
       timing: ``build_s``, ``compile_s``, ``solve_s`` (s).
-      admissibility: of the last increment: ``overlap`` (m, the deepest
-        interpenetration at a contact), ``overlap_rel`` (that over the smaller
+      admissibility: of the final state: ``overlap`` (m, the deepest
+        interpenetration of two blocks, over every pair whose boxes meet:
+        :func:`block_overlap`), ``overlap_rel`` (that over the smaller
         block's size), ``strength_excess`` (largest excess of a contact's forces
         over its strength, relative to its blocks' force scale), ``imbalance``
         (global), each with its tolerance (``tolerances``), and ``admissible``.
@@ -469,6 +471,32 @@ def stage_frame(scene, model, layout, state, ref, info, bolt_active, name: str, 
     }
 
 
+def block_overlap(model, state, n_real: int) -> tuple[float, float]:
+    """The deepest interpenetration of two blocks now (m), and that over the smaller one's size.
+
+    Measured on the blocks' polygons (walls included, excavated blocks not) over every
+    pair whose boxes meet and of which one block can move, as the separating-axis depth
+    (:func:`jaxdem.geometry.overlap_depths`), not at the contacts of the last sub-step
+    alone: a block that went into another where no contact point saw it counts too.
+    The size is a block's largest centroid-to-vertex distance, the smaller of the
+    pair's free blocks (as the solver's own check, :data:`jaxdem.core.status.OVERLAP_TOL`).
+    """
+    verts = np.asarray(state.verts)[:n_real]
+    nv = np.asarray(model.nv)[:n_real]
+    alive = np.asarray(state.alive)[:n_real]
+    free = np.asarray(model.free)[:n_real] & alive
+    radius = np.asarray(model.radius)[:n_real]
+    polys = [verts[k, :nv[k]] for k in range(n_real)]
+    i, j = geometry.near_box_pairs(geometry.bboxes(polys), 0.0)
+    keep = alive[i] & alive[j] & (free[i] | free[j])
+    i, j = i[keep], j[keep]
+    if len(i) == 0:
+        return 0.0, 0.0
+    depth = geometry.overlap_depths(polys, i, j)
+    size = np.minimum(np.where(free[i], radius[i], np.inf), np.where(free[j], radius[j], np.inf))
+    return float(depth.max()), float((depth / size).max())
+
+
 def build_result(scene, model, layout, state, ref, info, records, history, timing,
                  bolt_active=None, loose=()) -> Result:
     """Assemble the host Result from the final state and the increment records.
@@ -483,6 +511,11 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
     travel = np.asarray(info["travel"])[:nr]
     max_disp = float(model.max_displacement)
     last = records[-1]
+    overlap, overlap_rel = block_overlap(model, state, nr + len(layout.walls))
+    if status == Status.CONVERGED and overlap_rel > OVERLAP_TOL:
+        # The solver checks the overlap at its contacts; blocks gone into each other
+        # where no contact saw it are not an admissible equilibrium either.
+        status = Status.OVERLAP
     moving = moving_blocks(travel, max_disp) if status == Status.MECHANISM else []
     stable = status != Status.MECHANISM
     converged = status == Status.CONVERGED
@@ -551,7 +584,7 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
     imbalance_tol = IMBALANCE_FACTOR * float(model.tol)
 
     admissibility = {
-        "overlap": last.get("overlap", 0.0), "overlap_rel": last.get("overlap_rel", 0.0),
+        "overlap": overlap, "overlap_rel": overlap_rel,
         "strength_excess": last.get("strength_excess", 0.0), "imbalance": last["imbalance"],
         "tolerances": {"overlap_rel": OVERLAP_TOL, "strength_excess": STRENGTH_TOL,
                        "imbalance": imbalance_tol},

@@ -11,7 +11,9 @@ recompiles (never silent truncation). Small scenes use all pairs.
 Narrow phase (vertex-to-edge, per pair (a, b), a < b). Each vertex of one
 block is tested against the edges of the other. A vertex inside the other
 polygon grown by the margin is a spring slot, on the face it is closest to
-(preferring a face anti-parallel to one of its own adjacent faces). The slot
+(preferring a face anti-parallel to one of its own adjacent faces; a vertex on or
+inside the other block, only among the faces its own block lies outside of near it,
+so that a corner gone in along the line of the other's face is seen). The slot
 is part of an edge-to-edge contact when its own adjacent face is
 anti-parallel to that face within ``cos_parallel``: its effective length is
 half the overlap of the two faces, so the two end points of a face-to-face
@@ -297,11 +299,34 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ex, ey, cy, width, not_dup):
     c_in = _dot(sg(t_in)[:, :, None, :], sg(ty)[:, None, :, :])
     par_out = c_out < -model.cos_parallel
     par_in = c_in < -model.cos_parallel
+    # A vertex on or inside Y (within touch_tol of its nearest face, and within that
+    # face's span, not at a node) bears only on a face that X, near the vertex, lies
+    # outside of: one of its own faces is anti-parallel to it or leaves the vertex
+    # across its line by more than the parallel tolerance. A face whose line X's
+    # corner lies along or within (the face of a block on the same side of a joint
+    # trace as X: a slab that slides along a daylighting joint past the point where
+    # that trace goes on between two blocks below) is never its contact: its gap is
+    # zero however deep the corner has gone in through Y's other face. Without such
+    # a face, at a node and for a vertex outside Y, every face: a vertex just outside
+    # a face with its block's faces pointing into the face's line is an open slot on
+    # it as before. Where the slab turns a little, one of the two corners is inside
+    # the other block, and that side sees the overlap.
+    sin_par = jnp.sqrt(jnp.maximum(1.0 - model.cos_parallel**2, 0.0))
+    leaves = jnp.maximum(_dot(sg(tx)[:, :, None, :], sg(ny)[:, None, :, :]),
+                         -_dot(sg(t_in)[:, :, None, :], sg(ny)[:, None, :, :]))
+    entry = emy[:, None, :] & ((leaves > sin_par) | par_out | par_in)
+    nearest = jnp.argmax(d, axis=-1)[..., None]
+    s_near = _dot(sg(xv) - _take(sg(q0), nearest, axis=1), _take(sg(ty), nearest, axis=1))
+    l_near = _take(ly, nearest[..., 0], axis=1)
+    on = (jnp.any(entry, axis=-1) & (dmax <= model.touch_tol)
+          & (s_near > model.span_tol) & (s_near < l_near - model.span_tol))
+    entry = entry | ~on[..., None]
+    d_entry = jnp.where(entry, d, -jnp.inf)
     # A vertex that overlaps near a corner is on the face anti-parallel to its own.
     # "Near" is within the margin, but less than half of Y's least width: the
     # far face of a thin block is never near.
     window = jnp.minimum(model.margin, 0.5 * sg(width))
-    near_face = d >= dmax[..., None] - window[:, None, None]
+    near_face = d_entry >= jnp.max(d_entry, axis=-1, keepdims=True) - window[:, None, None]
     # Among the near faces anti-parallel to one of the vertex's own, the least
     # penetrated; without one, the least penetrated face. (A bonus added to d
     # rounded d away: at a corner of Y where both of X's faces are anti-parallel
@@ -309,24 +334,35 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ex, ey, cy, width, not_dup):
     # scene chose the other face.)
     eligible = near_face & (par_out | par_in)
     score = jnp.where(jnp.any(eligible, axis=-1, keepdims=True),
-                      jnp.where(eligible, d, -jnp.inf), d)
+                      jnp.where(eligible, d, -jnp.inf), d_entry)
     e = jnp.argmax(score, axis=-1).astype(jnp.int32)
     take = lambda x: _take(x, e[..., None], axis=-1)[..., 0]  # noqa: E731
+    # The face chosen is within the window of the vertex's nearest face: a vertex
+    # whose only faces of entry are deeper than that bears on nothing (Y's far
+    # side would give a spurious overlap).
+    beside = take(d) < dmax - window[:, None]
     n = _take(ny, e[..., None], axis=1)
     t = _take(ty, e[..., None], axis=1)
     q = _take(q0, e[..., None], axis=1)
     L_e = _take(ly, e, axis=1)
     po = take(par_out)
     pi = take(par_in)
+    # A corner that has gone past the end of Y's face it was sliding along bears on
+    # the face it crossed from there on, at its end too: the end of a face is
+    # where two faces meet end to end at a node, but this corner came along the
+    # other face's line, not to the node.
+    s_v = _dot(sg(xv) - sg(q), sg(t))
+    crossed = on & (take(d) < dmax - model.touch_tol)
+    inside = ((s_v > model.span_tol) & (s_v < L_e - model.span_tol)) | crossed
     g = _slot_geometry(model, xv, _take(xv, nxt[..., None], axis=1),
                        _take(xv, prev[..., None], axis=1), cx[:, None, :], cy[:, None, :], q, n,
-                       t, L_e, lx, l_in, po, pi)
+                       t, L_e, lx, l_in, po, pi, inside)
     # A vertex a little past the end of a face still bears on it: blocks whose
     # corners coincide (a regular grid) shift by joint shear, and the contact
     # point must not hop to the other block's vertex and lose its history.
     s_e = g.pop("s_e")
     in_span = (s_e >= -model.span_tol) & (s_e <= L_e + model.span_tol)
-    near = vmx & not_dup & (dmax <= model.margin) & in_span
+    near = vmx & not_dup & (dmax <= model.margin) & in_span & ~beside
     # Faces that meet end to end (a diagonal neighbour on a grid) share no
     # length: no spring.
     active = near & (g["share"] > 0)

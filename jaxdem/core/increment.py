@@ -101,7 +101,9 @@ class Progress(NamedTuple):
 
     ``state`` the blocks and springs now; ``status`` the outcome's code (-1 while it goes
     on: :class:`jaxdem.core.status.Status`); ``substeps``, ``iterations`` (Newton's, summed)
-    and ``stuck`` (sub-steps in a row that neither converged nor moved a step length);
+    and ``stuck`` (sub-steps in a row that neither converged, nor moved a step length, nor
+    brought the residual below a tenth of ``best``, the least since the last that did one
+    of the first two);
     ``travel`` (N,) each block's travel so far; ``residual`` the last sub-step's relative
     residual; ``balance`` and ``snapshot`` those of the last sub-step
     (:func:`jaxdem.core._substep.commit_substep`); ``pairs_needed``, ``cell_full`` and
@@ -114,6 +116,7 @@ class Progress(NamedTuple):
     status: jax.Array
     substeps: jax.Array
     stuck: jax.Array
+    best: jax.Array
     iterations: jax.Array
     travel: jax.Array
     residual: jax.Array
@@ -150,7 +153,15 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
         overflow = (need["pairs"] > state.capacity) | need["cell_full"] | need["slots_full"]
         travel = c.travel + block_travel(model, du)
         small = jnp.max(block_travel(model, du)) <= model.touch_tol
-        stuck = jnp.where(newton.converged | newton.clipped, 0, c.stuck + 1)
+        # A sub-step cut by the iteration limit that brought the residual below a
+        # tenth of the least one since the last converged or clipped sub-step is
+        # progress too (a block pressed into a corner contact that has just closed
+        # settles over a few sub-steps), not stuck; a residual that goes up and down
+        # is not, and a tenth at a time it comes down a few times at most.
+        moved = newton.converged | newton.clipped
+        settling = newton.rnorm < 0.1 * c.best
+        stuck = jnp.where(moved | settling, 0, c.stuck + 1)
+        best = jnp.where(moved, newton.rnorm, jnp.minimum(c.best, newton.rnorm))
         substeps = c.substeps + 1
         # The first outcome that holds ends the increment; -1 goes on. An
         # equilibrium counts only if it is admissible (no overlap, no law broken,
@@ -169,7 +180,8 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
         keep = overflow | ~newton.finite
         hold = lambda old, new: jax.tree.map(lambda o, n: jnp.where(keep, o, n), old, new)  # noqa: E731
         return Progress(state=hold(c.state, st_new), status=status, substeps=substeps,
-                        stuck=stuck, iterations=c.iterations + newton.it, travel=travel,
+                        stuck=stuck, best=best, iterations=c.iterations + newton.it,
+                        travel=travel,
                         residual=newton.rnorm, balance=balance, snapshot=snap,
                         pairs_needed=jnp.maximum(c.pairs_needed, need["pairs"]),
                         cell_full=c.cell_full | need["cell_full"],
@@ -185,6 +197,7 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
         p = jax.tree.leaves(tangents["state"])[0].shape[0]
         dsnap0 = {k: jnp.zeros((p,) + snap0[k].shape, dtype) for k in SNAPSHOT_FLOATS}
     init = Progress(state=state, status=status0, substeps=jnp.array(0), stuck=jnp.array(0),
+                    best=jnp.array(jnp.inf, dtype),
                     iterations=jnp.array(0), travel=jnp.zeros(N, dtype),
                     residual=jnp.array(jnp.inf, dtype), balance=zeros_like(balance0),
                     snapshot=zeros_like(snap0), pairs_needed=jnp.array(0),
