@@ -2,7 +2,8 @@
 
 Owns :func:`prepare_substep` (contacts and their history at the current geometry:
 the :class:`jaxdem.core._springs.Sub`, from its slots' part :func:`slot_fields_of` and
-its blocks' part :func:`block_fields_of`), :func:`_newton` (the iteration on du),
+its blocks' part :func:`block_fields_of`), :func:`pack_slots` (the touching slots that
+the iteration works on), :func:`_newton` (the iteration on du),
 :func:`commit_substep` (move the blocks, commit the springs, global balance),
 :func:`_admissibility` and :func:`substep`, which chains them. The increment
 (:mod:`jaxdem.core.increment`) repeats sub-steps until one converges.
@@ -550,9 +551,9 @@ def pack_slots(model: Model, sub: Sub, st0):
     S = st0.shape[0]
     P = S // (2 * model.n_vertices)
     C = model.slots_per_pair * P
-    count = jnp.sum(sub.geo["active"])
     if C >= S:
         return sub, st0, None, jnp.array(False)
+    count = jnp.sum(sub.geo["active"])
     sid = jnp.nonzero(sub.geo["active"], size=C, fill_value=S)[0]
     real = sid < S
     at = jnp.minimum(sid, S - 1)
