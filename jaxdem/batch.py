@@ -381,12 +381,9 @@ class _BatchDriver:
             over = (status == Status.CAPACITY_OVERFLOW.code) & self.live
             if not over.any():
                 break
-            if np.asarray(info["cell_full"])[over].any():
-                self.model = dataclasses.replace(self.model,
-                                                 cell_capacity=2 * self.model.cell_capacity)
-            if np.asarray(info["slots_full"])[over].any():
-                self.model = dataclasses.replace(self.model,
-                                                 slots_per_pair=2 * self.model.slots_per_pair)
+            self.model = model_mod.grown(self.model,
+                                         bool(np.asarray(info["cell_full"])[over].any()),
+                                         bool(np.asarray(info["slots_full"])[over].any()))
             need = int(np.asarray(info["pairs_needed"])[over].max())
             cap = self.state.capacity
             if need > cap:

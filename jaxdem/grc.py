@@ -263,7 +263,7 @@ def ground_reaction(scene, excavation: str, levels: int = 16, *, p0: float | Non
     timing = {k: float(batch.timing[k]) for k in ("build_s", "compile_s", "solve_s")}
     timing.update(chunk=batch.timing["chunk"], devices=batch.timing["devices"])
     t1 = time.perf_counter()
-    mechanism = _mechanism(solved, path, pressure, batch, name_blocks)
+    mechanism = _mechanism(pressure, batch, name_blocks)
     timing["mechanism_s"] = time.perf_counter() - t1
     undecided = [i for i, s in enumerate(status) if s not in (STABLE, MECHANISM)]
     equilibrium = None if line is None else intersect(pressure, monitors[name], line)
@@ -516,7 +516,7 @@ def _monitor(scene, name) -> str:
                      "section across the opening or a point on its wall ([[monitors]])")
 
 
-def _mechanism(scene, path, pressure, batch, name_blocks) -> dict | None:
+def _mechanism(pressure, batch, name_blocks) -> dict | None:
     hits = [i for i, s in enumerate(batch.status) if s == MECHANISM]
     if not hits:
         return None

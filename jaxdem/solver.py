@@ -574,10 +574,7 @@ def run_increment(model: Model, state: State, loads: Loads, tangents: dict | Non
         compile_s += dt
         if Status.of(info["status"]) != Status.CAPACITY_OVERFLOW:
             return model, new, info, compile_s
-        if bool(info["cell_full"]):
-            model = dataclasses.replace(model, cell_capacity=2 * model.cell_capacity)
-        if bool(info["slots_full"]):
-            model = dataclasses.replace(model, slots_per_pair=2 * model.slots_per_pair)
+        model = model_mod.grown(model, bool(info["cell_full"]), bool(info["slots_full"]))
         need = int(info["pairs_needed"])
         if need > state.capacity:
             capacity = model_mod.bucket(max(2 * state.capacity, int(1.3 * need) + 16))

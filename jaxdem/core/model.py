@@ -568,6 +568,18 @@ def block_bucket(n: int) -> int:
     return next(m * (1 << k) // 4 for m in (5, 6, 7, 8) if m * (1 << k) // 4 >= n)
 
 
+def grown(model: Model, cell_full: bool, slots_full: bool) -> Model:
+    """``model`` after an increment's capacity overflow: the grid cells' capacity doubled
+    where a cell was full, the places of the touching slots
+    (:func:`jaxdem.core._substep.pack_slots`) doubled where they were too few. Each changes
+    a static size, so the next call compiles again; nothing is truncated."""
+    if cell_full:
+        model = dataclasses.replace(model, cell_capacity=2 * model.cell_capacity)
+    if slots_full:
+        model = dataclasses.replace(model, slots_per_pair=2 * model.slots_per_pair)
+    return model
+
+
 def bucket(n: int) -> int:
     """The capacity bucket of n: the least 2^k or 3 x 2^(k-1) at or above it.
 
