@@ -274,7 +274,8 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ex, ey, cy, width, not_dup):
       not_dup: (P, V) bool, False for vertices already counted from the other side.
     Returns a dict of (P, V) arrays: active, gap (m, negative = overlap), point,
     normal and tangent of the contacted face, edge index, share (m), h_x, h_y (m),
-    own_edge (X's face anti-parallel to it, or -1), far_gap and far_point.
+    own_edge (X's face anti-parallel to it, or -1), far_gap and far_point; watch,
+    node_gap (P, V, 2) and node_normal (P, V, 2, 2) (see :func:`narrow_phase`).
     """
     q0, _, ly, ty, ny, emy = ey
     V = xv.shape[1]
@@ -320,6 +321,15 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ex, ey, cy, width, not_dup):
     l_near = _take(ly, nearest[..., 0], axis=1)
     on = (jnp.any(entry, axis=-1) & (dmax <= model.touch_tol)
           & (s_near > model.span_tol) & (s_near < l_near - model.span_tol))
+    # Y's node nearest to the vertex, and its two faces: that of the nearest face's
+    # nearer end, and the face meeting it there (for :func:`corner_bound`).
+    f1 = nearest[..., 0]
+    nvy = jnp.sum(emy, axis=-1)[:, None]
+    f2 = jnp.where(s_near >= 0.5 * l_near, jnp.where(f1 + 1 < nvy, f1 + 1, 0),
+                   jnp.where(f1 > 0, f1 - 1, nvy - 1))
+    node_gap = jnp.stack([dmax, _take(d, f2[..., None], axis=-1)[..., 0]], axis=-1)
+    node_normal = jnp.stack([_take(sg(ny), f1[..., None], axis=1),
+                             _take(sg(ny), f2[..., None], axis=1)], axis=-2)
     entry = entry | ~on[..., None]
     d_entry = jnp.where(entry, d, -jnp.inf)
     # A vertex that overlaps near a corner is on the face anti-parallel to its own.
@@ -367,7 +377,12 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ex, ey, cy, width, not_dup):
     # length: no spring.
     active = near & (g["share"] > 0)
     own_edge = jnp.where(po, k[None, :], jnp.where(pi, prev, -1))
-    return dict(g, active=active, point=xv, normal=n, tangent=t, edge=e, own_edge=own_edge)
+    # A vertex within the margin that bears on nothing (at a node of Y: corner to
+    # corner, faces meeting end to end) has no spring to stop it: its step is bounded
+    # by the two faces at that node instead (:func:`corner_bound`).
+    watch = vmx & (dmax <= model.margin) & ~active
+    return dict(g, active=active, point=xv, normal=n, tangent=t, edge=e, own_edge=own_edge,
+                watch=watch, node_gap=node_gap, node_normal=node_normal)
 
 
 def narrow_phase(model: Model, verts, centroid, pairs):
@@ -381,7 +396,12 @@ def narrow_phase(model: Model, verts, centroid, pairs):
     ``far_gap`` (m, the gap at the other end of an edge-to-edge overlap) and
     ``far_point`` (that end; the point itself for a corner); and, for
     :func:`slot_geometry`, ``own_edge`` (the vertex block's face anti-parallel
-    to the contacted one, or -1) and ``halved`` (both blocks see the point).
+    to the contacted one, or -1) and ``halved`` (both blocks see the point); for
+    the step bound of vertices without a spring
+    (:func:`jaxdem.core._substep.corner_bound`), ``watch`` (a vertex within the margin
+    that bears on nothing), ``node_gap`` (S, 2) its distances (m, negative behind)
+    from the lines of the two faces at the face block's node nearest to it, and
+    ``node_normal`` (S, 2, 2) their outward normals (values, no derivative).
     """
     N = model.n_blocks
     P = pairs.shape[0]

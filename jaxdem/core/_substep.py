@@ -360,7 +360,9 @@ def prepare_substep(model: Model, state: State, loads: Loads):
 
     Returns (mdl, sub, st0, pairs, need): the model with ``free`` restricted to
     the blocks alive now, the :class:`jaxdem.core._springs.Sub`, the slots' starting states, the
-    pair list and what the contact list needed (``pairs``, ``cell_full``).
+    pair list and what the contact list needed (``pairs``, ``cell_full``), with
+    ``corners``, the vertices that bear on nothing near another block's node
+    (:data:`CORNER_FIELDS`, for :func:`corner_bound`).
     """
     N = model.n_blocks
     free = model.free & state.alive
@@ -368,9 +370,10 @@ def prepare_substep(model: Model, state: State, loads: Loads):
     pairs, count, cell_full = broad_phase(mdl, state.verts, state.capacity, state.alive)
     hist = {k: v.reshape(-1) for k, v in remap_history(state, pairs, N).items()}
     geo = narrow_phase(mdl, state.verts, state.centroid, pairs)
+    corners = {k: geo.pop(k) for k in CORNER_FIELDS}
     geo, slots, st0 = slot_fields_of(mdl, state, loads, geo, hist)
     sub = Sub(geo=geo, **slots, **block_fields_of(model, state, loads, free))
-    return mdl, sub, st0, pairs, dict(pairs=count, cell_full=cell_full)
+    return mdl, sub, st0, pairs, dict(pairs=count, cell_full=cell_full, corners=corners)
 
 
 def slot_fields_of(mdl: Model, state: State, loads: Loads, geo: dict, hist: dict):
@@ -573,11 +576,76 @@ def pack_slots(model: Model, sub: Sub, st0):
     return packed, st0[at], sid, count > C
 
 
+#: The narrow phase's fields of the vertices without a spring near another block's node.
+CORNER_FIELDS = ("watch", "node_gap", "node_normal")
+#: How far (a fraction of the smaller block's step length) a corner may pass into another
+#: block at a node where it has no spring before the step is cut (:func:`corner_bound`).
+CORNER_PASS = 0.1
+
+
+def corner_bound(model: Model, sub: Sub, centroid, corners: dict, du):
+    """The largest scale s <= 1 of ``du`` at which no corner has passed into another block.
+
+    A vertex that comes to another block at one of its nodes, outside the span of both
+    faces that meet there (corner to corner), or at the end of a face that meets its
+    own end to end, has no spring (:func:`jaxdem.core._contact.narrow_phase`), so nothing
+    in the Newton step stops it: it would pass a whole step length into the other block
+    before the next detection saw it. Near the node that block is the intersection of
+    the two faces' half-planes, so the vertex is inside once it is behind both lines.
+    Along the step (linearised, the rows of :func:`jaxdem.core.kinematics.b_rows`) its
+    distance from face i is d_i + s delta_i; each face keeps it out on an interval of
+    s, and the bound is where their union, from s = 0, ends: the vertex behind both
+    faces by :data:`CORNER_PASS` of the smaller block's step length (elastic
+    compression of the blocks around a node of a grid, whose diagonal corners meet,
+    stays far below it). A vertex already behind both is left to its spring, which the
+    next detection gives it.
+    """
+    geo = sub.geo
+    a, b, p = geo["a"], geo["b"], geo["point"]
+    step = jnp.minimum(model.step_length, 0.25 * model.radius)
+    tol = CORNER_PASS * jnp.minimum(step[a], step[b])
+    rel = gather_pairs(du, a, b)
+    d = corners["node_gap"]
+    inf = jnp.inf
+    start, end = [], []
+    for i in range(2):
+        rows = b_rows(sub.free, a, b, p, p, corners["node_normal"][:, i], centroid, model.ndof)
+        delta = jnp.sum(rows * rel, axis=1)
+        out = d[:, i] > -tol
+        closing = delta < 0
+        # Out of the block on [start, end): from 0 until it crosses the line going
+        # in; or, behind the line now, from when it comes back out.
+        end.append(jnp.where(out, jnp.where(closing, (d[:, i] + tol) / jnp.where(closing, -delta,
+                                                                                   1.0), inf),
+                             inf))
+        opening = delta > 0
+        start.append(jnp.where(out, 0.0, jnp.where(opening, (-tol - d[:, i])
+                                                   / jnp.where(opening, delta, 1.0), inf)))
+    reach = jnp.maximum(jnp.where(start[0] <= 0, end[0], 0.0),
+                        jnp.where(start[1] <= 0, end[1], 0.0))
+    for i in range(2):
+        reach = jnp.where(start[i] <= reach, jnp.maximum(reach, end[i]), reach)
+    inside = (d[:, 0] <= -tol) & (d[:, 1] <= -tol)
+    reach = jnp.where(corners["watch"] & ~inside, reach, inf)
+    return jnp.minimum(jnp.min(reach, initial=inf), 1.0)
+
+
 def newton_and_commit(mdl: Model, state: State, sub: Sub, st0, pairs, need):
     """The rest of :func:`substep` once contacts are detected: Newton (on the touching
-    slots: :func:`pack_slots`), then commit."""
+    slots: :func:`pack_slots`), then commit.
+
+    The step is cut where a corner without a spring would pass into another block
+    (:func:`corner_bound`): the sub-step then ends short of equilibrium, and the next
+    detection gives that corner its spring.
+    """
+    need = dict(need)
+    corners = need.pop("corners")
     packed, st0_packed, sid, too_many = pack_slots(mdl, sub, st0)
     c = _newton(mdl, packed, st0_packed)
+    scale = corner_bound(mdl, sub, state.centroid, corners, c.du)
+    cut = scale < 1.0
+    c = c._replace(du=jnp.where(cut, scale * c.du, c.du), converged=c.converged & ~cut,
+                   clipped=c.clipped | cut)
     du, frozen, frozen_state, st = c.du, c.frozen & ~c.converged, c.frozen_state, c.st
     if sid is not None:
         frozen = jnp.zeros(st0.shape, bool).at[sid].set(frozen, mode="drop")

@@ -202,3 +202,81 @@ def test_overlap_depths_on_hand_worked_pairs():
     np.testing.assert_allclose(got[:4], [0.5, 0.0, 0.2, 0.1], atol=1e-12)
     assert got[4] == pytest.approx(_sat_depth(slab, under), rel=1e-12)
     assert got[4] == pytest.approx(0.30, abs=3e-3)
+
+
+# ---------------------------------------------------------------------------
+# A corner that arrives at another block's corner (no spring until it is in).
+#
+# Geometry alone: a free diamond (a square on its corner, half-diagonal 1 m) falls onto
+# a fixed one, apex above apex, 0.02 m apart. Above the lower apex each vertex is
+# outside the span of both faces that meet at the other's apex, so neither gets a
+# spring before it has passed; a free fall goes one step length (0.0707 m) a sub-step,
+# and without the bound the upper apex ended 0.051 m inside the lower block. Inside the
+# lower diamond near its apex means behind both of its 45-degree faces: depth d behind
+# both is a vertical depth d sqrt(2).
+
+
+def _diamonds(offset=0.0, gap=0.02):
+    def diamond(cx, cy):
+        return [[cx, cy - 1.0], [cx + 1.0, cy], [cx, cy + 1.0], [cx - 1.0, cy]]
+
+    scene = parse_scene({
+        "scene": {"name": "apex on apex"},
+        "materials": {"rock": dict(ROCK)},
+        "joints": {"j": {"kn": 1e6, "ks": 1e6, "friction_deg": 30.0}},
+        "blocks": [{"vertices": diamond(0.0, -1.0), "material": "rock", "fixed": True},
+                   {"vertices": diamond(offset, 1.0 + gap), "material": "rock"}],
+    })
+    model, state, _ = model_mod.build(scene)
+    return model, state
+
+
+def _one_substep(model, state):
+    from jaxdem.core._substep import substep
+    from jaxdem.core.loads import make_loads
+
+    return substep(model, state, make_loads(model, model.f_ext))
+
+
+def test_a_corner_falling_onto_a_corner_stops_at_it():
+    from jaxdem.core._substep import CORNER_PASS
+
+    model, state = _diamonds()
+    new, du, newton, _, _, _ = _one_substep(model, state)
+    step = float(model.step_length)
+    apex_y = float(np.asarray(new.verts)[1, 0, 1])
+    fall = 0.02 - apex_y
+    # It falls the gap and at most CORNER_PASS of a step length past the lower apex
+    # (behind both faces), not a whole step length; the sub-step ends there, cut.
+    assert apex_y >= -CORNER_PASS * step * np.sqrt(2.0) - 1e-12
+    assert fall > 0.02
+    assert bool(newton.clipped) and not bool(newton.converged)
+    # The next detection gives the apex its spring: it is a touching slot now.
+    pairs, _, _ = broad_phase(model, new.verts, new.capacity, new.alive)
+    geo = narrow_phase(model, new.verts, new.centroid, pairs)
+    assert np.any(np.asarray(geo["active"]) & (np.asarray(geo["a"]) == 1))
+
+
+def test_a_corner_that_misses_the_corner_falls_a_whole_step():
+    # The same diamond 2.5 m to the side: nothing in the way, one step length.
+    model, state = _diamonds(offset=2.5)
+    new, _, _, _, _, _ = _one_substep(model, state)
+    fall = float(np.asarray(state.verts)[1, 0, 1] - np.asarray(new.verts)[1, 0, 1])
+    assert fall == pytest.approx(float(model.step_length), rel=1e-9)
+
+
+def test_every_substep_of_the_fall_keeps_the_corner_out():
+    # Sub-step after sub-step (the diamond tips off the apex to one side), the two
+    # polygons' separating-axis depth stays within the first sub-step's bound (the apex
+    # CORNER_PASS of a step behind both faces: sqrt(2) times that below the lower apex);
+    # 0.0093 m here, where without the bound the apex went 0.035 m in.
+    from jaxdem.core._substep import CORNER_PASS
+
+    model, state = _diamonds(offset=1e-3)
+    step = float(model.step_length)
+    deepest = 0.0
+    for _ in range(12):
+        state, _, _, _, _, _ = _one_substep(model, state)
+        v = np.asarray(state.verts)[:, :4]
+        deepest = max(deepest, _sat_depth(v[0], v[1]))
+    assert deepest <= CORNER_PASS * step * np.sqrt(2.0)
