@@ -22,7 +22,8 @@ the sub-step. When the secant iteration stalls (R stays put: a block just
 past limit equilibrium, whose small residual would move it only by
 R / (eps k) an iteration), the slip tangent is used and the step goes the
 whole step length along the mechanism, so that it is followed and reported,
-not left to creep into the iteration limit. A slot whose state flips
+not left to creep into the iteration limit; where that slip-tangent step did not
+reduce R (a block sliding free), at once. A slot whose state flips
 :data:`FREEZE_AFTER` times in one sub-step is frozen in its last state for
 the rest of that sub-step, which ends open/close chatter. Frozen slots only
 shape the path: a sub-step converges only if every block also balances with
@@ -115,7 +116,8 @@ class Iterate(NamedTuple):
     in a row made no progress with the states held, ``settled`` how many reduced the
     residual with the states held, ``trying`` the slip tangent is being tried,
     ``tangent`` the last step used it, ``untried`` a tried step has not failed or
-    overshot in this sub-step.
+    overshot in this sub-step, ``lost`` a stall's slip-tangent step did not reduce the
+    residual in this sub-step (a stall is then followed as a mechanism at once).
     """
 
     du: jax.Array
@@ -135,6 +137,7 @@ class Iterate(NamedTuple):
     trying: jax.Array
     tangent: jax.Array
     untried: jax.Array
+    lost: jax.Array
 
 
 def _newton(model: Model, sub: Sub, st0):
@@ -222,6 +225,13 @@ def _newton(model: Model, sub: Sub, st0):
         untried = c.untried & ~failed
         trying = still & untried & slipping & (c.trying | (settled >= 2)
                                                | (c.tangent & progress))
+        # A stall's slip-tangent step that did not reduce the residual (a block
+        # sliding free: R does not change along its path) is a mechanism: it is
+        # followed at once (``creeping``), before the states it disturbs reset the
+        # stall. Else the secant walked back to the same stall and the tangent threw
+        # the block again, a cycle of 16 iterations that ran into the iteration limit
+        # (seed example 4 wet, saturation: 300 of the increment's 311).
+        lost = c.lost | (c.tangent & ~c.trying & ~progress)
         tangent = trying | (stall >= 3)
 
         def newton_step():
@@ -263,7 +273,7 @@ def _newton(model: Model, sub: Sub, st0):
         # moves. Along the mechanism R does not change, so go the whole step
         # along it (the elastic part of ddu, eps times smaller, stays
         # negligible) and let the next sub-step follow it.
-        creeping = c.stall >= 5
+        creeping = (c.stall >= 5) | (lost & (stall >= 3))
         s_travel = jnp.where(creeping & jnp.isfinite(fit), fit, jnp.minimum(fit, 1.0))
         # No step lands a block inside another. A slot may close during the step
         # but not sink deeper than its spring's own compression under the forces
@@ -301,7 +311,7 @@ def _newton(model: Model, sub: Sub, st0):
                        frozen_state=frozen_state, it=it, done=done, converged=converged,
                        clipped=clipped & ~converged, finite=finite, rnorm=rnorm * model.tol,
                        rprev=rnorm, stall=stall, settled=settled, trying=trying,
-                       tangent=tangent, untried=untried)
+                       tangent=tangent, untried=untried, lost=lost)
 
     inf = jnp.array(jnp.inf, dtype)
     init = Iterate(du=jnp.zeros((N, model.ndof), dtype), st=st0, flips=zeros_s,
@@ -309,7 +319,7 @@ def _newton(model: Model, sub: Sub, st0):
                    done=jnp.array(False), converged=jnp.array(False),
                    clipped=jnp.array(False), finite=jnp.array(True), rnorm=inf, rprev=inf,
                    stall=jnp.array(0), settled=jnp.array(0), trying=jnp.array(False),
-                   tangent=jnp.array(False), untried=jnp.array(True))
+                   tangent=jnp.array(False), untried=jnp.array(True), lost=jnp.array(False))
     return jax.lax.while_loop(lambda c: ~c.done, body, init)
 
 
