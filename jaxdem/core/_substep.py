@@ -263,10 +263,6 @@ def _newton(model: Model, sub: Sub, st0):
         if model.lanes is not None:
             idle = jax.lax.psum(jnp.where(converged | c.done, 0, 1), model.lanes) == 0
         ddu = jax.lax.cond(idle, lambda: jnp.zeros_like(c.du), newton_step)
-        t_now = block_travel(model, c.du)
-        t_step = block_travel(model, ddu)
-        room = jnp.maximum(step - t_now, 0.0)
-        fit = jnp.min(jnp.where(t_step > 0, room / jnp.where(t_step > 0, t_step, 1.0), jnp.inf))
         # Still no progress: a mechanism whose residual is small (a block just
         # past limit equilibrium) would only creep, by R / (eps k) an
         # iteration, and run out of iterations instead of showing that it
@@ -274,6 +270,17 @@ def _newton(model: Model, sub: Sub, st0):
         # along it (the elastic part of ddu, eps times smaller, stays
         # negligible) and let the next sub-step follow it.
         creeping = (c.stall >= 5) | (lost & (stall >= 3))
+        # A mechanism moves where its out-of-balance forces push it (they do work
+        # on the step, R . ddu > 0). The slip tangent is not definite near one, and
+        # its step can point back up the slope: a sidewall wedge went down one step
+        # length and up the next, sub-step after sub-step, until its path (not its
+        # displacement) passed max_displacement and it was reported as a mechanism.
+        work = jnp.sum(jnp.where(sub.free[:, None], ev["R"] * ddu, 0.0))
+        ddu = jnp.where((creeping | (tangent & ~trying)) & (work < 0), -ddu, ddu)
+        t_now = block_travel(model, c.du)
+        t_step = block_travel(model, ddu)
+        room = jnp.maximum(step - t_now, 0.0)
+        fit = jnp.min(jnp.where(t_step > 0, room / jnp.where(t_step > 0, t_step, 1.0), jnp.inf))
         s_travel = jnp.where(creeping & jnp.isfinite(fit), fit, jnp.minimum(fit, 1.0))
         # No step lands a block inside another. A slot may close during the step
         # but not sink deeper than its spring's own compression under the forces

@@ -27,7 +27,8 @@ from jaxdem.core import model as model_mod
 from jaxdem.core._contact import broad_phase, narrow_phase
 from jaxdem.scene import parse_scene
 
-SLOPE = Path(__file__).resolve().parents[1] / "data" / "daylighting_slope_wet.toml"
+DATA = Path(__file__).resolve().parents[1] / "data"
+SLOPE = DATA / "daylighting_slope_wet.toml"
 BENCH_Y = 10.0
 #: Overlap area of two final blocks, relative to the smaller one, that no admissible
 #: state reaches. Two slabs pressed along a 30 m bedding face close by their force
@@ -280,3 +281,43 @@ def test_every_substep_of_the_fall_keeps_the_corner_out():
         v = np.asarray(state.verts)[:, :4]
         deepest = max(deepest, _sat_depth(v[0], v[1]))
     assert deepest <= CORNER_PASS * step * np.sqrt(2.0)
+
+
+# ---------------------------------------------------------------------------
+# A mechanism that is reported moves: where it went, not back and forth.
+#
+# tests/data/tunnel_two_sets_staged.toml: the bench stage releases a wedge of the left
+# wall onto the 60-degree joint set (friction 25 degrees), and a block under it falls
+# into the bench. The slip tangent is not definite near a mechanism: its step pointed
+# down the joint in one sub-step and back up it in the next, and the wedge's path
+# passed max_displacement (1.18 m) while it stood 58 mm from where it started; it was
+# reported as a mechanism that had not moved. A mechanism is reported once a block's
+# path in one increment passes max_displacement; the block that went furthest must
+# then be about that far from where it started.
+
+
+@functools.cache
+def _two_sets_tunnel():
+    return jaxdem.solve(jaxdem.load_scene(DATA / "tunnel_two_sets_staged.toml"))
+
+
+def test_a_reported_mechanism_has_moved_as_far_as_its_path():
+    r = _two_sets_tunnel()
+    stages = {s["name"]: s for s in r.stages}
+    # The heading (crown slivers bonded to their neighbours) stands.
+    assert stages["heading"]["converged"] and stages["heading"]["stable"]
+    assert r.status == "mechanism" and r.moving_blocks
+    u = {b["id"]: b["u"][:2] for b in r.blocks}
+    moved = {i: float(np.hypot(*u[i])) for i in u}
+    furthest = max(moved[i] for i in r.moving_blocks)
+    model, _, _ = model_mod.build(jaxdem.load_scene(DATA / "tunnel_two_sets_staged.toml"))
+    assert furthest >= 0.9 * float(model.max_displacement)
+    # The wall wedge slid down its joint into the bench (+x, -y), not up it: along the
+    # 60-degree set within 3 degrees (as the incline's mechanism, test_incline.py; u also
+    # holds the heading's elastic displacement).
+    wedge = [i for i in r.moving_blocks if moved[i] < 0.5 * furthest]
+    assert wedge
+    for i in wedge:
+        ux, uy = u[i]
+        assert ux > 0 and uy < 0
+        assert np.degrees(np.arctan2(-uy, ux)) == pytest.approx(60.0, abs=3.0)
