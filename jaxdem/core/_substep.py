@@ -22,8 +22,7 @@ the sub-step. When the secant iteration stalls (R stays put: a block just
 past limit equilibrium, whose small residual would move it only by
 R / (eps k) an iteration), the slip tangent is used and the step goes the
 whole step length along the mechanism, so that it is followed and reported,
-not left to creep into the iteration limit; where that slip-tangent step did not
-reduce R (a block sliding free), at once. A slot whose state flips
+not left to creep into the iteration limit. A slot whose state flips
 :data:`FREEZE_AFTER` times in one sub-step is frozen in its last state for
 the rest of that sub-step, which ends open/close chatter. Frozen slots only
 shape the path: a sub-step converges only if every block also balances with
@@ -116,8 +115,7 @@ class Iterate(NamedTuple):
     in a row made no progress with the states held, ``settled`` how many reduced the
     residual with the states held, ``trying`` the slip tangent is being tried,
     ``tangent`` the last step used it, ``untried`` a tried step has not failed or
-    overshot in this sub-step, ``lost`` a stall's slip-tangent step did not reduce the
-    residual in this sub-step (a stall is then followed as a mechanism at once).
+    overshot in this sub-step.
     """
 
     du: jax.Array
@@ -137,7 +135,6 @@ class Iterate(NamedTuple):
     trying: jax.Array
     tangent: jax.Array
     untried: jax.Array
-    lost: jax.Array
 
 
 def _newton(model: Model, sub: Sub, st0):
@@ -225,13 +222,6 @@ def _newton(model: Model, sub: Sub, st0):
         untried = c.untried & ~failed
         trying = still & untried & slipping & (c.trying | (settled >= 2)
                                                | (c.tangent & progress))
-        # A stall's slip-tangent step that did not reduce the residual (a block
-        # sliding free: R does not change along its path) is a mechanism: it is
-        # followed at once (``creeping``), before the states it disturbs reset the
-        # stall. Else the secant walked back to the same stall and the tangent threw
-        # the block again, a cycle of 16 iterations that ran into the iteration limit
-        # (seed example 4 wet, saturation: 300 of the increment's 311).
-        lost = c.lost | (c.tangent & ~c.trying & ~progress)
         tangent = trying | (stall >= 3)
 
         def newton_step():
@@ -269,18 +259,22 @@ def _newton(model: Model, sub: Sub, st0):
         # moves. Along the mechanism R does not change, so go the whole step
         # along it (the elastic part of ddu, eps times smaller, stays
         # negligible) and let the next sub-step follow it.
-        creeping = (c.stall >= 5) | (lost & (stall >= 3))
-        # A mechanism moves where its out-of-balance forces push it (they do work
-        # on the step, R . ddu > 0). The slip tangent is not definite near one, and
-        # its step can point back up the slope: a sidewall wedge went down one step
-        # length and up the next, sub-step after sub-step, until its path (not its
-        # displacement) passed max_displacement and it was reported as a mechanism.
-        work = jnp.sum(jnp.where(sub.free[:, None], ev["R"] * ddu, 0.0))
-        ddu = jnp.where((creeping | (tangent & ~trying)) & (work < 0), -ddu, ddu)
+        creeping = c.stall >= 5
         t_now = block_travel(model, c.du)
         t_step = block_travel(model, ddu)
         room = jnp.maximum(step - t_now, 0.0)
         fit = jnp.min(jnp.where(t_step > 0, room / jnp.where(t_step > 0, t_step, 1.0), jnp.inf))
+        # A mechanism moves where its out-of-balance forces push it (they do work
+        # on the step, R . ddu > 0). The slip tangent is not definite near one, and
+        # a stall's step that goes beyond the step length (Newton's step reaches no
+        # equilibrium within it: a mechanism is followed) could point back up the
+        # slope: a sidewall wedge went down one step length and up the next,
+        # sub-step after sub-step, until its path (not its displacement) passed
+        # max_displacement and it was reported as a mechanism. A step within the
+        # step length is Newton's, whatever its sign.
+        following = creeping | (tangent & ~trying & (fit < 1.0))
+        work = jnp.sum(jnp.where(sub.free[:, None], ev["R"] * ddu, 0.0))
+        ddu = jnp.where(following & (work < 0), -ddu, ddu)
         s_travel = jnp.where(creeping & jnp.isfinite(fit), fit, jnp.minimum(fit, 1.0))
         # No step lands a block inside another. A slot may close during the step
         # but not sink deeper than its spring's own compression under the forces
@@ -318,7 +312,7 @@ def _newton(model: Model, sub: Sub, st0):
                        frozen_state=frozen_state, it=it, done=done, converged=converged,
                        clipped=clipped & ~converged, finite=finite, rnorm=rnorm * model.tol,
                        rprev=rnorm, stall=stall, settled=settled, trying=trying,
-                       tangent=tangent, untried=untried, lost=lost)
+                       tangent=tangent, untried=untried)
 
     inf = jnp.array(jnp.inf, dtype)
     init = Iterate(du=jnp.zeros((N, model.ndof), dtype), st=st0, flips=zeros_s,
@@ -326,7 +320,7 @@ def _newton(model: Model, sub: Sub, st0):
                    done=jnp.array(False), converged=jnp.array(False),
                    clipped=jnp.array(False), finite=jnp.array(True), rnorm=inf, rprev=inf,
                    stall=jnp.array(0), settled=jnp.array(0), trying=jnp.array(False),
-                   tangent=jnp.array(False), untried=jnp.array(True), lost=jnp.array(False))
+                   tangent=jnp.array(False), untried=jnp.array(True))
     return jax.lax.while_loop(lambda c: ~c.done, body, init)
 
 
