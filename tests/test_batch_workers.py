@@ -250,3 +250,14 @@ def test_workers_do_not_hang():
                              env={**os.environ, "PYTHONPATH": str(ROOT)})
         assert out.returncode == 0, out.stderr[-3000:]
         assert out.stdout.strip().endswith("done")
+
+
+def test_the_commands_refuse_workers_below_one(tmp_path, capsys):
+    from jaxdem.cli import main
+
+    for command in (["grc", str(ROOT / "jaxdem" / "data" / "demo.toml")],
+                    ["sweep", str(ROOT / "examples" / "block_on_incline.toml"), "--vary",
+                     "joints.base.kn=1e6:2e6", "--samples", "2"]):
+        code = main([*command, "--workers", "0", "--out", str(tmp_path / command[0])])
+        assert code == 2
+        assert "--workers must be >= 1 (got 0)" in capsys.readouterr().err
