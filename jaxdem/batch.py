@@ -138,8 +138,10 @@ def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
     S = theta.shape[0]
     # A small batch runs briefly: its program compiled quick (jaxdem.core.compile_cache).
     quick = model.n_blocks * increment_count(scene, layout) * S <= QUICK_WORK
-    per_device = 1 if workers not in (None, 1) else _chunk_size(model, state, -(-S // n_dev),
-                                                                 devices)
+    if workers not in (None, 1) and devices[0].platform == "cpu":
+        per_device = 1  # several workers on a CPU: unbatched factorisations (_worker_count)
+    else:
+        per_device = _chunk_size(model, state, -(-S // n_dev), devices)
     size = chunk if chunk is not None else per_device * n_dev
     size = max(n_dev, -(-min(size, max(S, 1)) // n_dev) * n_dev)
     chunks = [np.arange(start, min(start + size, S)) for start in range(0, S, size)]
@@ -223,9 +225,9 @@ def _solved(solve, chunks: list, workers: int):
     one (a chunk near a mechanism takes ten times the Newton iterations of another, so
     a fixed share would leave threads waiting for the slowest).
 
-    The first chunk starts alone, and the others once its programs are compiled (or
-    loaded): each program is compiled once, and JAX's small programs (array
-    creation) are not compiled by two threads at the same time either.
+    The first chunk starts alone, and the others once its increment's program is
+    compiled (or loaded): that program, and JAX's small programs of the array
+    operations every chunk runs before it, are compiled once, not by each thread.
     """
     if workers == 1:
         for rows in chunks:
