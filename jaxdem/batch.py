@@ -237,7 +237,8 @@ def _solved(solve, chunks: list, workers: int):
     try:
         ready = threading.Event()
         first = pool.submit(float64(solve), chunks[0], ready)
-        ready.wait()
+        while not ready.wait(0.05) and not first.done():
+            pass
         pending = [first] + [pool.submit(float64(solve), rows) for rows in chunks[1:]]
         for future in concurrent.futures.as_completed(pending):
             yield future.result()
