@@ -68,8 +68,11 @@ class BatchResult:
       iterations: (S,) Newton iterations of each sample, summed over increments.
       moving_blocks: (S,) lists: where a sample found a mechanism, the blocks that kept
         moving (:func:`jaxdem.results.moving_blocks`, as ``Result.moving_blocks``); else [].
-      timing: ``build_s``, ``compile_s``, ``solve_s`` (s); ``chunk`` (samples
-        per batch) and ``devices`` (the devices the samples were spread over).
+      timing: ``build_s``, ``compile_s``, ``solve_s`` (s: wall time; ``solve_s`` is
+        the time from the first chunk's start to the last one's end, less
+        ``compile_s``, the longest any worker waited for programs); ``chunk``
+        (samples per batch), ``devices`` (the devices the samples were spread over)
+        and ``workers`` (chunks solved at the same time).
     """
 
     params: list
