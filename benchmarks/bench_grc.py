@@ -17,7 +17,9 @@ largest monitor value; the statuses must agree level by level.
 jaxdem grc SCENE --levels K`` (its grc.json and grc.png) against K ``python -m jaxdem run
 SCENE --set supports.I.pressure=P`` at the curve's pressures, each with its figures (the
 default) and with ``--no-figures``; all warm (one run of each first), medians of
-``--repeats``, in one process so that the ratios come from the same minutes.
+``--repeats``, in one process so that the ratios come from the same minutes. The grc
+command is also timed with ``--workers 1`` (one level after another, as before the
+levels were solved several at a time).
 """
 
 from __future__ import annotations
@@ -140,9 +142,10 @@ def commands(args) -> None:
 
     timed([*jaxdem, "run", args.scene, "--set", f"{path}={pressures[0]!r}", "--out",
            str(out / "run0")])  # warm-up
-    rows = {"grc": [], "runs": [], "runs, --no-figures": []}
+    rows = {"grc": [], "grc --workers 1": [], "runs": [], "runs, --no-figures": []}
     for _ in range(args.repeats):
         rows["grc"].append(timed(grc))
+        rows["grc --workers 1"].append(timed([*grc, "--workers", "1"]))
         rows["runs"].append(singles(True))
         rows["runs, --no-figures"].append(singles(False))
     g = statistics.median(rows["grc"])
@@ -150,9 +153,11 @@ def commands(args) -> None:
           f"{os.getloadavg()[0]:.1f}; {args.levels} levels of {args.scene}, warm, medians of "
           f"{args.repeats}")
     print()
-    print("| command | wall s (median) | runs / grc |")
+    print("| command | wall s (median) | this / grc |")
     print("|---|---:|---:|")
     print(f"| `jaxdem grc --levels {args.levels}` | {g:.1f} | |")
+    one = statistics.median(rows["grc --workers 1"])
+    print(f"| `jaxdem grc --levels {args.levels} --workers 1` | {one:.1f} | {one / g:.2f} |")
     for name in ("runs", "runs, --no-figures"):
         m = statistics.median(rows[name])
         print(f"| {args.levels} x `jaxdem run --set {path}=P`"

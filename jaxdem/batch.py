@@ -13,14 +13,23 @@ chunks sized to fit memory, padded so that every chunk has the same shape
 (one compilation), and, with several devices, each chunk is split over them
 with ``jax.shard_map`` so that each device iterates its own part to
 convergence without waiting for the others.
+
+On one CPU device, chunks of one sample (the sparse path's) are solved by a
+few threads at once (``workers``, one per core by default), each taking the
+next chunk when it has finished one: XLA runs each program on a thread of its
+own, without Python's lock, so the cores share the samples, and a slow sample
+(hundreds of Newton iterations near a mechanism) holds up only its own thread.
+The answers are those of one chunk after another, bit for bit.
 """
 
 from __future__ import annotations
 
 import collections
+import concurrent.futures
 import dataclasses
 import functools
 import os
+import threading
 import time
 
 import jax
@@ -59,8 +68,11 @@ class BatchResult:
       iterations: (S,) Newton iterations of each sample, summed over increments.
       moving_blocks: (S,) lists: where a sample found a mechanism, the blocks that kept
         moving (:func:`jaxdem.results.moving_blocks`, as ``Result.moving_blocks``); else [].
-      timing: ``build_s``, ``compile_s``, ``solve_s`` (s); ``chunk`` (samples
-        per batch) and ``devices`` (the devices the samples were spread over).
+      timing: ``build_s``, ``compile_s``, ``solve_s`` (s: wall time; ``solve_s`` is
+        the time from the first chunk's start to the last one's end, less
+        ``compile_s``, the longest any worker waited for programs); ``chunk``
+        (samples per batch), ``devices`` (the devices the samples were spread over)
+        and ``workers`` (chunks solved at the same time).
     """
 
     params: list
@@ -76,7 +88,7 @@ class BatchResult:
 
 @float64
 def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
-                progress=None) -> BatchResult:
+                workers: int | None = None, progress=None) -> BatchResult:
     """Solve ``scene`` at each row of ``theta`` (values of ``params``), batched.
 
     Args:
@@ -87,11 +99,17 @@ def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
       theta: (S, p) values, file units (friction in degrees).
       chunk: samples solved together, a multiple of the number of devices;
         default: on a CPU a few (what stays in cache, see :func:`_chunk_size`),
-        on a GPU as many as fit in memory (at most 1,024 per device). On
-        several CPU devices one per device, and no more is accepted
-        (:func:`_one_per_device`).
+        one with the sparse path or several workers; on a GPU as many as fit in
+        memory (at most 1,024 per device). On several CPU devices one per device,
+        and no more is accepted (:func:`_one_per_device`).
       devices: devices to shard each chunk over (default: all local devices
         of the default backend).
+      workers: chunks solved at the same time, each by its own thread, which takes
+        the next chunk when it has finished one (:func:`_worker_count`). Default:
+        on one CPU device with chunks of one sample, one per core
+        (``os.cpu_count()``, at most one per chunk); else 1. On a CPU more than one
+        needs chunks of one sample (a larger ``chunk`` is refused); on several
+        devices it must be 1.
       progress: optional callable, called after each chunk with
         (samples done, samples in all).
     Returns:
@@ -116,48 +134,49 @@ def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
         raise SceneError("chunk", f"at most one sample per device on {n_dev} CPU devices "
                          f"(got {chunk}): batched LAPACK calls on several CPU devices at once "
                          f"can deadlock in jaxlib (see README, 'Several devices')")
+    _check_workers(workers, chunk, devices)
     t0 = time.perf_counter()
-    model, state, layout, data0, values, read = _prepared(scene, tuple(params))
+    prepared = _prepared(scene, tuple(params))
+    model, state, layout = prepared[:3]
     S = theta.shape[0]
     # A small batch runs briefly: its program compiled quick (jaxdem.core.compile_cache).
     quick = model.n_blocks * increment_count(scene, layout) * S <= QUICK_WORK
-    per_device = _chunk_size(model, state, -(-S // n_dev), devices)
+    if workers not in (None, 1) and devices[0].platform == "cpu":
+        per_device = 1  # several workers on a CPU: unbatched factorisations (_worker_count)
+    else:
+        per_device = _chunk_size(model, state, -(-S // n_dev), devices)
     size = chunk if chunk is not None else per_device * n_dev
     size = max(n_dev, -(-min(size, max(S, 1)) // n_dev) * n_dev)
+    chunks = [np.arange(start, min(start + size, S)) for start in range(0, S, size)]
+    workers = _worker_count(workers, size, len(chunks), devices)
     build_s = time.perf_counter() - t0
+
+    def solve(rows, ready=None):
+        return _solve_chunk(scene, prepared, theta, rows, size, devices, quick, ready)
 
     out_mon: dict = {}
     status = np.zeros(S, int)
     iterations = np.zeros(S, int)
     moving: list = [[] for _ in range(S)]
-    compile_s = solve_s = 0.0
-    for start in range(0, S, size):
-        rows = np.arange(start, min(start + size, S))
-        # Pad the last chunk with copies of its last sample: one shape, one compilation.
-        take = np.concatenate([rows, np.full(size - len(rows), rows[-1])])
-        fields, arrays = values(jnp.asarray(theta[take], jnp.float64))
-        data = _batch_data(data0, arrays, size)
-        cast = {k: jnp.asarray(v, model.radius.dtype) for k, v in fields.items()}
-        d = _BatchDriver(model, cast, state, layout, data, devices, quick)
-        run(scene, model, state, layout, data, driver=d)
-        compile_s += d.compile_s
-        solve_s += d.solve_s
-        placed = len(d.state.verts.sharding.device_set)
-        n = len(rows)
-        status[rows] = d.status_of[:n]
-        iterations[rows] = d.iterations[:n]
+    compile_by_thread: collections.Counter = collections.Counter()
+    placed = done = 0
+    t1 = time.perf_counter()
+    for c in _solved(solve, chunks, workers):
+        rows = c["rows"]
+        status[rows] = c["status"]
+        iterations[rows] = c["iterations"]
         for i, row in enumerate(rows):
-            moving[row] = d.moving[i]
-        keys = ("centroid", "rot", "strain")
-        now = {k: getattr(d.state, k) for k in keys}
-        ref = None if d.ref is None else {k: getattr(d.ref, k) for k in keys}
-        readings = read(now, ref)
-        for name, v in readings.items():
-            v = np.asarray(v, float)[:n]
-            v = v[:, 0] if layout.monitors[name]["kind"] == "section" else v
+            moving[row] = c["moving"][i]
+        for name, v in c["monitors"].items():
             out_mon.setdefault(name, np.full((S,) + v.shape[1:], np.nan))[rows] = v
+        compile_by_thread[c["thread"]] += c["compile_s"]
+        placed = max(placed, c["devices"])
+        done += len(rows)
         if progress is not None:
-            progress(int(rows[-1]) + 1, S)
+            progress(done, S)
+    # Wall time: the workers compile (or wait for a program) at the same time.
+    compile_s = max(compile_by_thread.values())
+    solve_s = time.perf_counter() - t1 - compile_s
     ok = status == Status.CONVERGED.code
     for v in out_mon.values():
         v[~ok] = np.nan
@@ -166,7 +185,108 @@ def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
         status=[Status.of(s).label for s in status], stable=status != Status.MECHANISM.code,
         converged=ok, iterations=iterations,
         timing=dict(build_s=build_s, compile_s=compile_s, solve_s=solve_s, chunk=size,
-                    devices=placed), moving_blocks=moving)
+                    devices=placed, workers=workers), moving_blocks=moving)
+
+
+def _solve_chunk(scene, prepared, theta, rows, size: int, devices, quick: bool,
+                 ready=None) -> dict:
+    """Solve the samples ``rows`` of ``theta`` as one chunk of ``size`` (padded).
+
+    Returns their ``status``, ``iterations``, ``moving`` blocks and ``monitors``
+    (name -> values in the rows' order), and the chunk's ``compile_s``, the
+    ``devices`` it was placed on and the ``thread`` that solved it. ``ready``, if
+    given, is set once the chunk's programs are in hand (:class:`_BatchDriver`).
+    """
+    model, state, layout, data0, values, read = prepared
+    try:
+        # Pad the last chunk with copies of its last sample: one shape, one compilation.
+        take = np.concatenate([rows, np.full(size - len(rows), rows[-1])])
+        fields, arrays = values(jnp.asarray(theta[take], jnp.float64))
+        data = _batch_data(data0, arrays, size)
+        cast = {k: jnp.asarray(v, model.radius.dtype) for k, v in fields.items()}
+        d = _BatchDriver(model, cast, state, layout, data, devices, quick, ready)
+        run(scene, model, state, layout, data, driver=d)
+    finally:
+        if ready is not None:
+            ready.set()
+    n = len(rows)
+    keys = ("centroid", "rot", "strain")
+    now = {k: getattr(d.state, k) for k in keys}
+    ref = None if d.ref is None else {k: getattr(d.ref, k) for k in keys}
+    monitors = {}
+    for name, v in read(now, ref).items():
+        v = np.asarray(v, float)[:n]
+        monitors[name] = v[:, 0] if layout.monitors[name]["kind"] == "section" else v
+    return dict(rows=rows, status=d.status_of[:n], iterations=d.iterations[:n],
+                moving=d.moving[:n], monitors=monitors, compile_s=d.compile_s,
+                devices=len(d.state.verts.sharding.device_set), thread=threading.get_ident())
+
+
+def _solved(solve, chunks: list, workers: int):
+    """``solve(rows)`` of each chunk, yielded as each is done: in turn on this thread,
+    or by ``workers`` threads at once, each taking the next chunk when it has finished
+    one (a chunk near a mechanism takes ten times the Newton iterations of another, so
+    a fixed share would leave threads waiting for the slowest).
+
+    The first chunk starts alone, and the others once its increment's program is
+    compiled (or loaded): that program, and JAX's small programs of the array
+    operations every chunk runs before it, are compiled once, not by each thread.
+    """
+    if workers == 1:
+        for rows in chunks:
+            yield solve(rows)
+        return
+    pool = concurrent.futures.ThreadPoolExecutor(workers, thread_name_prefix="jaxdem-batch")
+    try:
+        ready = threading.Event()
+        first = pool.submit(float64(solve), chunks[0], ready)
+        while not ready.wait(0.05) and not first.done():
+            pass
+        pending = [first] + [pool.submit(float64(solve), rows) for rows in chunks[1:]]
+        for future in concurrent.futures.as_completed(pending):
+            yield future.result()
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _check_workers(workers, chunk, devices) -> None:
+    """Refuse a ``workers`` that is not a whole number >= 1, or that would solve chunks
+    at the same time where that is not safe (:func:`_worker_count`)."""
+    if workers is None:
+        return
+    if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
+        raise SceneError("workers", f"must be a whole number >= 1 (got {workers!r})")
+    if workers == 1:
+        return
+    if len(devices) > 1:
+        raise SceneError("workers", f"must be 1 on {len(devices)} devices: each chunk is "
+                         "split over them (see README, 'Several devices')")
+    if devices[0].platform == "cpu" and chunk is not None and chunk > 1:
+        raise SceneError("workers", f"{workers} workers on a CPU solve chunks of one sample "
+                         f"(got chunk {chunk}): batched LAPACK calls from several threads at "
+                         "once can deadlock in jaxlib (see README, 'Several devices')")
+
+
+def _worker_count(workers, size: int, n_chunks: int, devices) -> int:
+    """Threads that solve chunks at the same time (``workers``; None: the default).
+
+    On one CPU device with chunks of one sample, one per core by default: XLA runs
+    each program on its own thread of its CPU pool, without Python's lock, so the
+    programs of several chunks run at the same time (sparsax runs SuiteSparse's
+    numeric factorisations one at a time, under its own lock; the rest of an
+    increment, contacts, assembly and line search, runs in parallel). The demo
+    tunnel's 16-level curve (487 blocks) solved in 0.61-0.74 of the time of one
+    chunk after another with two workers on a 2-core CPU (1.85 cores busy against
+    1.45: XLA already runs independent parts of one program side by side). Chunks
+    of one sample keep every factorisation unbatched: jaxlib 0.10.2's batched
+    LAPACK kernels wait on XLA's CPU thread pool, which concurrent programs share
+    (the deadlock of :func:`_one_per_device`). Elsewhere one: on a GPU a chunk
+    already fills the device, and several devices share each chunk.
+    """
+    if workers is None:
+        one_cpu = len(devices) == 1 and devices[0].platform == "cpu"
+        workers = (os.cpu_count() or 1) if one_cpu and size == 1 else 1
+    return int(max(1, min(workers, n_chunks)))
 
 
 _PREPARED: collections.OrderedDict = collections.OrderedDict()
@@ -222,7 +342,8 @@ def _chunk_size(model, state, S: int, devices) -> int:
     every one pays the Newton iterations and sub-steps of the slowest (the levels of
     a ground reaction curve near a mechanism take hundreds, the others tens). The
     demo tunnel's 16-level curve took 40.5 s in chunks of 1, 62 s in 5, 86 s in 2
-    and 243 s in 8 (BENCHMARKS.md, "Ground reaction curve").
+    and 243 s in 8 (BENCHMARKS.md, "Ground reaction curve"). Chunks of one sample
+    are solved several at a time, by ``workers`` threads (:func:`_worker_count`).
     On a GPU, many: as many as fit in a quarter
     of its free memory (the state and its copies inside an increment, and the
     dense matrix and its factor), at most 1,024.
@@ -325,12 +446,14 @@ class _BatchDriver:
 
     It has the single-solve driver's interface; ``status`` is CONVERGED while
     any sample is still going, so the loop runs until every sample has finished
-    or failed. Each sample's own outcome is in ``status_of``.
+    or failed. Each sample's own outcome is in ``status_of``. ``ready`` (a
+    threading.Event), if given, is set once the increment's program is in hand.
     """
 
-    def __init__(self, model, fields, state, layout, data: Data, devices, quick=False):
+    def __init__(self, model, fields, state, layout, data: Data, devices, quick=False,
+                 ready=None):
         C = data.weight.shape[0]
-        self.C, self.devices, self.quick = C, tuple(devices), quick
+        self.C, self.devices, self.quick, self.ready = C, tuple(devices), quick, ready
         self.model, self.fields, self.layout, self.data = model, fields, layout, data
         self.state = jax.tree.map(lambda x: jnp.broadcast_to(x, (C,) + x.shape), state)
         self.status_of = np.full(C, Status.CONVERGED.code)
@@ -374,6 +497,8 @@ class _BatchDriver:
             t1 = time.perf_counter()
             fn, dt = compiled_program(fn_jit, self.model, self.fields, self.state, loads, skip,
                                       quick=self.quick)
+            if self.ready is not None:
+                self.ready.set()
             new, info = fn(self.model, self.fields, self.state, loads, skip)
             status = np.asarray(info["status"])
             self.compile_s += dt

@@ -165,7 +165,7 @@ class GroundReaction:
         ``message``; None without.
       message: one paragraph for a rock engineer.
       timing: ``build_s``, ``compile_s``, ``solve_s`` of the batch, ``mechanism_s`` of
-        naming the mechanism's blocks, ``total_s`` (s); ``chunk``, ``devices``.
+        naming the mechanism's blocks, ``total_s`` (s); ``chunk``, ``devices``, ``workers``.
     """
 
     scene: str
@@ -210,7 +210,7 @@ def ground_reaction(scene, excavation: str, levels: int = 16, *, p0: float | Non
                     start: float | None = None,
                     support: SupportLine | Mapping | tuple | None = None,
                     monitor: str | None = None, name_blocks: bool = True,
-                    chunk: int | None = None, devices=None,
+                    chunk: int | None = None, devices=None, workers: int | None = None,
                     progress: Callable[[int, int], None] | None = None) -> GroundReaction:
     """The ground reaction curve of ``excavation``: K support pressures in one batch.
 
@@ -226,7 +226,7 @@ def ground_reaction(scene, excavation: str, levels: int = 16, *, p0: float | Non
       monitor: the monitor that measures convergence for the support line;
         default the first section monitor, else the first point monitor.
       name_blocks: name the first mechanism's moving blocks (from the batch).
-      chunk, devices, progress: see :func:`jaxdem.batch.solve_batch`.
+      chunk, devices, workers, progress: see :func:`jaxdem.batch.solve_batch`.
     Returns:
       a :class:`GroundReaction`.
 
@@ -251,7 +251,7 @@ def ground_reaction(scene, excavation: str, levels: int = 16, *, p0: float | Non
     path = f"supports.{index}.pressure"
     pressure = np.linspace(start, 0.0, levels)
     batch = solve_batch(solved, [path], pressure[:, None], chunk=chunk, devices=devices,
-                        progress=progress)
+                        workers=workers, progress=progress)
     monitors, displacements = {}, {}
     for m, v in batch.monitors.items():
         if v.ndim == 2:
@@ -261,7 +261,8 @@ def ground_reaction(scene, excavation: str, levels: int = 16, *, p0: float | Non
             monitors[m] = v
     status = list(batch.status)
     timing = {k: float(batch.timing[k]) for k in ("build_s", "compile_s", "solve_s")}
-    timing.update(chunk=batch.timing["chunk"], devices=batch.timing["devices"])
+    timing.update(chunk=batch.timing["chunk"], devices=batch.timing["devices"],
+                  workers=batch.timing["workers"])
     t1 = time.perf_counter()
     mechanism = _mechanism(pressure, batch, name_blocks)
     timing["mechanism_s"] = time.perf_counter() - t1

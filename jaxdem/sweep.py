@@ -259,7 +259,8 @@ class SweepResult:
 @float64
 def sweep(scene, vary: Sequence[Variable | str] | Mapping, samples: int, *,
           method: str | None = None, seed: int = 0, tornado: bool = True,
-          chunk: int | None = None, devices=None, progress=None) -> SweepResult:
+          chunk: int | None = None, devices=None, workers: int | None = None,
+          progress=None) -> SweepResult:
     """Solve ``scene`` over sampled parameters; see the module for ``vary``.
 
     Args:
@@ -270,7 +271,7 @@ def sweep(scene, vary: Sequence[Variable | str] | Mapping, samples: int, *,
         range, else "lhs".
       seed: the random seed (same seed, same samples).
       tornado: also solve the 1 + 2p one-at-a-time points of the tornado.
-      chunk, devices: see :func:`jaxdem.batch.solve_batch`.
+      chunk, devices, workers: see :func:`jaxdem.batch.solve_batch`.
       progress: optional callable (samples done, samples in all).
     Returns:
       a :class:`SweepResult`.
@@ -302,7 +303,7 @@ def sweep(scene, vary: Sequence[Variable | str] | Mapping, samples: int, *,
     everything = np.vstack([theta, extra]) if tornado else theta
     try:
         batch = solve_batch(scene, paths, everything, chunk=chunk, devices=devices,
-                            progress=progress)
+                            workers=workers, progress=progress)
         mode = "batched"
     except NotSmooth:
         batch = solve_each(scene, paths, everything, progress=progress)
@@ -321,7 +322,7 @@ def solve_each(scene, params, theta, progress=None) -> BatchResult:
     S = theta.shape[0]
     monitors: dict = {}
     status, iterations = [], np.zeros(S, int)
-    timing = dict(build_s=0.0, compile_s=0.0, solve_s=0.0, chunk=1, devices=1)
+    timing = dict(build_s=0.0, compile_s=0.0, solve_s=0.0, chunk=1, devices=1, workers=1)
     for i, row in enumerate(theta):
         res = solve(scene, set=dict(zip(params, (float(x) for x in row), strict=True)))
         for k in ("build_s", "compile_s", "solve_s"):

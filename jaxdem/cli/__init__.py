@@ -6,12 +6,14 @@
     jaxdem run   SCENE.toml [--out DIR] [--set PATH=VALUE ...] [--vtk] [--no-figures]
     jaxdem check SCENE.toml [--out DIR]                         # validate, draw blocks
     jaxdem sweep SCENE.toml --vary PATH=LOW:HIGH[:log] [--vary PATH=DIST:ARGS ...] --samples N
-           [--method grid|lhs|mc] [--seed S] [--chunk C] [--out DIR] [--set PATH=VALUE ...]
+           [--method grid|lhs|mc] [--seed S] [--chunk C] [--workers W]
+           [--out DIR] [--set PATH=VALUE ...]
     jaxdem fos SCENE.toml [--out DIR] [--intact] [--tensile] [--trials N] [--tolerance R]
            [--set PATH=VALUE ...]                               # factor of safety
     jaxdem grc SCENE.toml [--excavation NAME] [--levels K] [--p0 KPA] [--from KPA]
            [--monitor NAME] [--support-stiffness KPA_PER_M --support-capacity KPA
-           [--install-convergence M]] [--chunk C] [--out DIR] [--set PATH=VALUE ...]
+           [--install-convergence M]] [--chunk C] [--workers W] [--out DIR]
+           [--set PATH=VALUE ...]
                                                                 # ground reaction curve
     jaxdem back-analyse SCENE.toml --observed FILE.csv --fit PATH [--fit PATH ...]
            [--bounds PATH=LO:HI ...] [--optimizer gauss-newton|lbfgs|adam] [--max-iterations N]

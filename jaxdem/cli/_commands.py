@@ -199,7 +199,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     try:
         with bar:
             result = sweep(scene, variables, args.samples, method=method, seed=args.seed,
-                           chunk=args.chunk, progress=bar)
+                           chunk=args.chunk, workers=args.workers, progress=bar)
     except SceneError:
         raise
     except Exception as err:  # noqa: BLE001 - exit codes are 0, 2 and 3 only
@@ -305,7 +305,7 @@ def cmd_grc(args: argparse.Namespace) -> int:
     try:
         with bar:
             curve = ground_reaction(scene, excavation, args.levels, chunk=args.chunk,
-                                    progress=bar, **options)
+                                    workers=args.workers, progress=bar, **options)
     except SceneError:
         raise
     except Exception as err:  # noqa: BLE001 - exit codes are 0, 2 and 3 only
@@ -412,9 +412,12 @@ def _set_overrides(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _check_chunk(args: argparse.Namespace) -> None:
-    """Refuse a ``--chunk`` below 1 (exit 2)."""
+    """Refuse a ``--chunk`` or ``--workers`` below 1 (exit 2)."""
     if args.chunk is not None and args.chunk < 1:
         raise InputError(f"--chunk must be >= 1 (got {args.chunk})")
+    workers = getattr(args, "workers", None)
+    if workers is not None and workers < 1:
+        raise InputError(f"--workers must be >= 1 (got {workers})")
 
 
 def _parse_overrides(items: Sequence[str]) -> dict[str, Any]:

@@ -31,6 +31,10 @@ DEFAULT_FOS_OUT = "jaxdem-fos"
 DEFAULT_GRC_OUT = "jaxdem-grc"
 DEFAULT_RELIABILITY_OUT = "jaxdem-reliability"
 
+WORKERS_HELP = ("batches solved at the same time, one thread each (default: on a CPU where "
+                "each batch holds one sample, as on the sparse path of scenes above 200 "
+                "blocks, one per core; else 1); more than 1 on a CPU needs --chunk 1")
+
 
 def _version() -> str:
     """The package version, without importing JAX (``jaxdem --version`` answers at once)."""
@@ -192,6 +196,8 @@ def make_parser() -> argparse.ArgumentParser:
     sw.add_argument("--chunk", type=int, default=None, metavar="C",
                     help="samples per batch (default: on a CPU a few, what stays in cache; "
                     "on a GPU as many as fit in memory)")
+    sw.add_argument("--workers", type=int, default=None, metavar="W",
+                    help=WORKERS_HELP)
     sw.add_argument("--out", default=DEFAULT_SWEEP_OUT, metavar="DIR",
                     help=f"output folder (default {DEFAULT_SWEEP_OUT})")
     _add_set_option(sw, "override scene parameters for every sample (repeatable)")
@@ -257,6 +263,8 @@ def _add_grc_parser(sub) -> None:
                      help="support line: the convergence when it is installed (m, default 0)")
     grc.add_argument("--chunk", type=int, default=None, metavar="C",
                      help="levels solved together (default: as jaxdem sweep)")
+    grc.add_argument("--workers", type=int, default=None, metavar="W",
+                     help=WORKERS_HELP)
     grc.add_argument("--out", default=DEFAULT_GRC_OUT, metavar="DIR",
                      help=f"output folder (default {DEFAULT_GRC_OUT})")
     _add_set_option(grc, "override scene parameters before the curve (repeatable)")

@@ -160,7 +160,7 @@ def sweep_summary(result: Any) -> str:
     lines = [f"{len(b.stable)} samples: {int(b.converged.sum())} in equilibrium, "
              f"{pr['unstable']} mechanisms, {pr['undecided']} without an answer "
              f"({result.mode}: {t['solve_s']:.2f} s solving, {t['compile_s']:.1f} s compiling, "
-             f"{t['chunk']} samples per batch)"]
+             f"{t['chunk']} samples per batch, {t.get('workers', 1)} at a time)"]
     if pr["decided"]:
         lo, hi = pr["ci95"]
         lines.append(f"probability of instability {pr['p_unstable']:.3f} "

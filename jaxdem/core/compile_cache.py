@@ -30,6 +30,10 @@ background one (the solver's increment, while the monitors' programs and the
 in-situ preload are compiled); :func:`compiled_program` collects it. :func:`while_compiling`
 runs host work (the command line's matplotlib warm-up) once a compilation starts.
 
+Several threads: :func:`compiled_program` compiles a program once however many
+threads ask for it at the same time (the workers of :func:`jaxdem.batch.solve_batch`):
+the first compiles (or loads) it, the others wait for it.
+
 Data flow: knows nothing of the solver; the host driver (:mod:`jaxdem.solver`)
 and :mod:`jaxdem.batch` compile through it.
 """
@@ -53,6 +57,7 @@ import jax
 
 _COMPILED: collections.OrderedDict = collections.OrderedDict()
 _PENDING: dict = {}  # key -> Future of a program compiling in the background (prefetch)
+_COMPILING: dict = {}  # key -> Future of a program a caller's thread compiles or loads now
 _BACKGROUND: list = []  # the one worker thread's executor, made on first use
 _HOST_TASKS: list = []  # host work waiting for the next compilation (while_compiling)
 _LOCK = threading.Lock()  # guards these and COMPILE_TIMES: the background threads use them
@@ -357,7 +362,7 @@ def prefetch(fn, *args, quick: bool = False, **static) -> float:
     """
     key, leaves, tree = _key(fn, args, static, quick)
     with _LOCK:
-        if key in _COMPILED or key in _PENDING:
+        if key in _COMPILED or key in _PENDING or key in _COMPILING:
             return 0.0
     t0 = time.perf_counter()
     try:
@@ -405,6 +410,9 @@ def compiled_program(fn, *args, quick: bool = False, **static):
     and crashed in XLA's compiler. When one is dropped, JAX's own caches (the
     small host-step programs) are cleared with it; the persistent compilation
     cache on disk still serves a shape that comes back.
+
+    Thread-safe: a thread that asks for a program another thread is compiling (or
+    loading) waits for that one, and the time returned is its wait.
     """
     key, leaves, tree = _key(fn, args, static, quick)
     t0 = time.perf_counter()
@@ -412,16 +420,41 @@ def compiled_program(fn, *args, quick: bool = False, **static):
         if key in _COMPILED:
             _COMPILED.move_to_end(key)
             return _COMPILED[key], 0.0
-        pending = _PENDING.pop(key, None)
-    compiled = None
-    if pending is not None:
+        other = _COMPILING.get(key)
+        if other is None:
+            pending = _PENDING.pop(key, None)
+            mine = _COMPILING[key] = concurrent.futures.Future()
+    if other is not None:
         try:
-            compiled = pending.result()
+            return other.result(), time.perf_counter() - t0
         except Exception:  # noqa: BLE001 - compile here, where an error reaches the caller
-            compiled = None
-    if compiled is None:
-        compiled, finish = _lower(fn, args, static, quick, leaves, tree)
+            compiled, _ = compiled_program(fn, *args, quick=quick, **static)
+            return compiled, time.perf_counter() - t0
+    try:
+        compiled = None
+        if pending is not None:
+            try:
+                compiled = pending.result()
+            except Exception:  # noqa: BLE001 - compile here, where an error reaches the caller
+                compiled = None
         if compiled is None:
-            compiled = finish()
-    _remember(key, compiled)
+            compiled, finish = _lower(fn, args, static, quick, leaves, tree)
+            if compiled is None:
+                compiled = finish()
+        _remember(key, compiled)
+    except BaseException as err:
+        _done_compiling(key, mine, error=err)
+        raise
+    _done_compiling(key, mine, compiled)
     return compiled, time.perf_counter() - t0
+
+
+def _done_compiling(key, future, compiled=None, error=None) -> None:
+    """Hand the program (or the error) to the threads waiting for it in
+    :func:`compiled_program`; a later caller finds it in the registry."""
+    with _LOCK:
+        _COMPILING.pop(key, None)
+    if error is None:
+        future.set_result(compiled)
+    else:
+        future.set_exception(error)
