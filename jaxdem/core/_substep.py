@@ -91,6 +91,12 @@ def force_scales(model: Model, sub: Sub):
     return s0, 0.1 * model.tol * jnp.where(jnp.isfinite(s_slot), s_slot, biggest)
 
 
+def block_steps(model: Model):
+    """The farthest each block (N,) may travel in one sub-step (m): ``step_length``, and a
+    small block at most a quarter of its radius."""
+    return jnp.minimum(model.step_length, 0.25 * model.radius)
+
+
 #: A slot whose state flips this many times in one sub-step is held in its last state
 #: for the rest of it (open/close and stick/slip chatter). 4 froze slots on their way
 #: to an answer: with the line search and the pierced slots below, seed example 4 (wet)
@@ -157,8 +163,7 @@ def _newton(model: Model, sub: Sub, st0):
     dtype = sub.load.dtype
     s0, band = force_scales(model, sub)
     zeros_s = jnp.zeros(S, jnp.int32)
-    # A small block moves at most a quarter of its radius per sub-step.
-    step = jnp.minimum(model.step_length, 0.25 * model.radius)
+    step = block_steps(model)
     direct = model.linear_solver != "cg"
 
     def merit(ev, tol):
@@ -613,7 +618,7 @@ def corner_bound(model: Model, sub: Sub, centroid, corners: dict, du):
     """
     geo = sub.geo
     a, b, p = geo["a"], geo["b"], geo["point"]
-    step = jnp.minimum(model.step_length, 0.25 * model.radius)
+    step = block_steps(model)
     tol = CORNER_PASS * jnp.minimum(step[a], step[b])
     rel = gather_pairs(du, a, b)
     d = corners["node_gap"]
@@ -622,16 +627,14 @@ def corner_bound(model: Model, sub: Sub, centroid, corners: dict, du):
     for i in range(2):
         rows = b_rows(sub.free, a, b, p, p, corners["node_normal"][:, i], centroid, model.ndof)
         delta = jnp.sum(rows * rel, axis=1)
-        out = d[:, i] > -tol
-        closing = delta < 0
         # Out of the block on [start, end): from 0 until it crosses the line going
-        # in; or, behind the line now, from when it comes back out.
-        end.append(jnp.where(out, jnp.where(closing, (d[:, i] + tol) / jnp.where(closing, -delta,
-                                                                                   1.0), inf),
-                             inf))
-        opening = delta > 0
-        start.append(jnp.where(out, 0.0, jnp.where(opening, (-tol - d[:, i])
-                                                   / jnp.where(opening, delta, 1.0), inf)))
+        # in; or, behind the line now, from when it comes back out. s at which the
+        # vertex is tol behind the line (inf where it never gets there):
+        safe = jnp.where(delta != 0, delta, 1.0)
+        crossing = jnp.where(delta != 0, -(d[:, i] + tol) / safe, inf)
+        out = d[:, i] > -tol
+        end.append(jnp.where(out & (delta < 0), crossing, inf))
+        start.append(jnp.where(out, 0.0, jnp.where(delta > 0, crossing, inf)))
     reach = jnp.maximum(jnp.where(start[0] <= 0, end[0], 0.0),
                         jnp.where(start[1] <= 0, end[1], 0.0))
     for i in range(2):
