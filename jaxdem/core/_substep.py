@@ -183,7 +183,7 @@ def _newton(model: Model, sub: Sub, st0):
         # were frozen on the way to an answer elsewhere (stuck beyond their
         # strength, closed in tension): they take the law's state, and the
         # iteration goes on with it (an active-set update).
-        balanced = (rnorm <= 1.0) & ~jnp.any(changed)
+        balanced = rnorm <= 1.0
         off = sub.free & (block_residual(model, ev["R_law"]) > tol)
         converged = balanced & ~jnp.any(off)
         a, b = sub.geo["a"], sub.geo["b"]
