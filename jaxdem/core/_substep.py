@@ -182,7 +182,14 @@ def _newton(model: Model, sub: Sub, st0):
         # it does not, the frozen slots with a misfit on an unbalanced block
         # were frozen on the way to an answer elsewhere (stuck beyond their
         # strength, closed in tension): they take the law's state, and the
-        # iteration goes on with it (an active-set update).
+        # iteration goes on with it (an active-set update). The states of ev
+        # are the law's at du given the previous states and the hysteresis
+        # band, and a fixed point of it (evaluated again with them as the
+        # previous states they come out the same), so a state that changed in
+        # this iteration does not stop a balanced iterate: slots at zero force
+        # (joints between columns that carry nothing) chatter between stick,
+        # slip and open at round-off forever, and kept a 70 x 70 grid iterating
+        # at 0.3 tolerances (114 iterations, 16 without the condition).
         balanced = rnorm <= 1.0
         off = sub.free & (block_residual(model, ev["R_law"]) > tol)
         converged = balanced & ~jnp.any(off)

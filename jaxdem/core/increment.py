@@ -17,7 +17,7 @@ installed bolts) and looks for static equilibrium with large displacements:
     move and rotate the blocks by du (exact rigid motion), commit the
     spring forces and states.
   until a sub-step converges (every free block's |R| <= tol times its own
-  force scale, no state change) with a negligible du, or a block has
+  force scale, with the springs' forces of the law) with a negligible du, or a block has
   travelled ``max_displacement`` (mechanism).
 
 Owns :func:`increment` and :func:`increment_tangent` (jitted), the loop of
