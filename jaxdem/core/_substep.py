@@ -22,7 +22,9 @@ the sub-step. When the secant iteration stalls (R stays put: a block just
 past limit equilibrium, whose small residual would move it only by
 R / (eps k) an iteration), the slip tangent is used and the step goes the
 whole step length along the mechanism, so that it is followed and reported,
-not left to creep into the iteration limit. A slot whose state flips
+not left to creep into the iteration limit; where R stood still in the stall (a
+block sliding free) and that slip-tangent step did not reduce it, at the next stall
+at once. A slot whose state flips
 :data:`FREEZE_AFTER` times in one sub-step is frozen in its last state for
 the rest of that sub-step, which ends open/close chatter. Frozen slots only
 shape the path: a sub-step converges only if every block also balances with
@@ -103,6 +105,9 @@ def block_steps(model: Model):
 #: takes 685 iterations with 12 and 816 with 4 (721 before all three), BENCHMARKS.md
 #: "Issue 30, Newton".
 FREEZE_AFTER = 12
+#: A stall whose residual changes by less than this (relative) an iteration is flat: a
+#: block that slides free, its out-of-balance force the same wherever it is.
+FLAT = 1e-4
 #: Halvings of a Newton step that the line search tries before it takes the whole step.
 LINE_SEARCH_HALVINGS = 8
 #: Armijo's sufficient decrease of the merit, per unit of step.
@@ -121,7 +126,10 @@ class Iterate(NamedTuple):
     in a row made no progress with the states held, ``settled`` how many reduced the
     residual with the states held, ``trying`` the slip tangent is being tried,
     ``tangent`` the last step used it, ``untried`` a tried step has not failed or
-    overshot in this sub-step.
+    overshot in this sub-step, ``flat`` how many stalled iterations in a row left the
+    residual as it was (to :data:`FLAT`), ``lost`` the slip-tangent step of such a
+    flat stall did not reduce the residual in this sub-step (a stall is then followed
+    as a mechanism at once).
     """
 
     du: jax.Array
@@ -141,6 +149,8 @@ class Iterate(NamedTuple):
     trying: jax.Array
     tangent: jax.Array
     untried: jax.Array
+    lost: jax.Array
+    flat: jax.Array
 
 
 def _newton(model: Model, sub: Sub, st0):
@@ -228,12 +238,25 @@ def _newton(model: Model, sub: Sub, st0):
         settled = jnp.where(still & progress, c.settled + 1, 0)
         failed = c.trying & ~progress
         stall = jnp.where(still & ~progress & ~failed, c.stall + 1, 0)
+        flat = jnp.where((stall > 0) & (jnp.abs(rnorm - c.rprev) <= FLAT * rnorm), c.flat + 1, 0)
         slipping = jnp.any(sub.geo["active"] & (ev["state"] == SLIP))
         if model.n_bolts:
             slipping |= jnp.any(sub.bolt["active"] & (ev["bolt_state"] != 0))
         untried = c.untried & ~failed
         trying = still & untried & slipping & (c.trying | (settled >= 2)
                                                | (c.tangent & progress))
+        # A flat stall (the residual the same to FLAT, iteration after iteration: a
+        # block sliding free, its out-of-balance force the same wherever it is)
+        # whose slip-tangent step did not reduce the residual is a mechanism: the
+        # next stall is followed at once (``creeping``), before the states the
+        # tangent step disturbs reset it. Else the secant walked back to the same
+        # stall and the tangent threw the block again, a cycle of 10 iterations into
+        # the iteration limit (seed example 4 wet, saturation: 300 of the
+        # increment's 310). A stall in which the residual still falls slowly (1% an
+        # iteration, seed example 2's last increment) is not flat: followed at once,
+        # it threw that tunnel's blocks a step length each sub-step (1,200
+        # iterations).
+        lost = c.lost | (c.tangent & ~c.trying & ~progress & (c.flat >= 2))
         tangent = trying | (stall >= 3)
 
         def newton_step():
@@ -271,7 +294,7 @@ def _newton(model: Model, sub: Sub, st0):
         # moves. Along the mechanism R does not change, so go the whole step
         # along it (the elastic part of ddu, eps times smaller, stays
         # negligible) and let the next sub-step follow it.
-        creeping = c.stall >= 5
+        creeping = (c.stall >= 5) | (lost & (stall >= 3))
         t_now = block_travel(model, c.du)
         t_step = block_travel(model, ddu)
         room = jnp.maximum(step - t_now, 0.0)
@@ -324,7 +347,7 @@ def _newton(model: Model, sub: Sub, st0):
                        frozen_state=frozen_state, it=it, done=done, converged=converged,
                        clipped=clipped & ~converged, finite=finite, rnorm=rnorm * model.tol,
                        rprev=rnorm, stall=stall, settled=settled, trying=trying,
-                       tangent=tangent, untried=untried)
+                       tangent=tangent, untried=untried, lost=lost, flat=flat)
 
     inf = jnp.array(jnp.inf, dtype)
     init = Iterate(du=jnp.zeros((N, model.ndof), dtype), st=st0, flips=zeros_s,
@@ -332,7 +355,8 @@ def _newton(model: Model, sub: Sub, st0):
                    done=jnp.array(False), converged=jnp.array(False),
                    clipped=jnp.array(False), finite=jnp.array(True), rnorm=inf, rprev=inf,
                    stall=jnp.array(0), settled=jnp.array(0), trying=jnp.array(False),
-                   tangent=jnp.array(False), untried=jnp.array(True))
+                   tangent=jnp.array(False), untried=jnp.array(True), lost=jnp.array(False),
+                   flat=jnp.array(0))
     return jax.lax.while_loop(lambda c: ~c.done, body, init)
 
 
