@@ -85,7 +85,39 @@ def test_overrides_are_checked_too():
 
 @pytest.mark.parametrize("path", BUNDLED, ids=lambda p: p.name)
 def test_the_bundled_examples_give_no_warning(path):
-    assert load_scene(path).warnings == ()
+    if path.name.startswith("seed_example3"):
+        # The paper's K0 = 0 under 48 m of rock: test_in_situ_beyond_the_rock_strength.
+        assert len(load_scene(path).warnings) == 1
+        assert load_scene(path).warnings[0].startswith("in_situ: at k0 = 0")
+    else:
+        assert load_scene(path).warnings == ()
+
+
+def test_in_situ_beyond_the_rock_strength():
+    """Seed example 3 (Hataf & Baharloo, table 2): gravity only, K0 = 0, intact rock c =
+    200 kPa, phi = 35 deg, 26 kN/m3 in cells, the surface at y = 20 m and the model's base
+    at y = -28 m. Uniaxial (sigma_h = 0), the rock fails where sigma_v = 26 z passes its
+    uniaxial strength 2 c tan(45 + phi / 2) = 768 kPa: below z = 29.55 m, y = -9.55 m, and
+    the base is at 48 m (1,248 kPa). Its initial state ran into the iteration limit there
+    (1,200 Newton iterations, 316 s); the warning says why. With k0 >= 1 / tan^2(62.5 deg)
+    = 0.271 (Mohr-Coulomb: sigma_1 - N sigma_3 = sigma_v (1 - N k0) <= 0) it cannot fail."""
+    path = ROOT / "examples" / "seed_example3_without_D.toml"
+    scene = load_scene(path)
+    (w,) = scene.warnings
+    n = 3.6902   # tan^2(62.5 deg)
+    depth = 2 * 200 * n**0.5 / 26.0
+    assert depth == pytest.approx(29.55, abs=0.01)
+    assert f"below y = {20.0 - depth:.1f} m, {depth:.1f} m deep" in w
+    assert "uniaxial strength 768 kPa" in w and "materials.rock" in w
+    assert scene.with_overrides({"in_situ.k0": 0.28}).warnings == ()
+    # k0 = 0.26: 1 - N k0 = 0.0405, z* = 29.55 / 0.0405 = 730 m, far below the model.
+    assert scene.with_overrides({"in_situ.k0": 0.26}).warnings == ()
+    # k0 = 0.2: z* = 29.55 / 0.262 = 113 m: still below the base (48 m).
+    assert scene.with_overrides({"in_situ.k0": 0.2}).warnings == ()
+    # k0 = 0.1: z* = 29.55 / 0.631 = 46.8 m, just above the base.
+    assert len(scene.with_overrides({"in_situ.k0": 0.1}).warnings) == 1
+    # A stronger rock carries it all.
+    assert scene.with_overrides({"materials.rock.cohesion": 420.0}).warnings == ()
 
 
 def test_the_command_line_prints_them_on_stderr_and_writes_them_to_result_json(tmp_path, capsys):

@@ -17,7 +17,7 @@ import numpy as np
 
 from jaxdem import geometry
 from jaxdem.scene._fields import SceneError, fmt_point, read_vertices
-from jaxdem.scene._schema import Block, Domain, Excavation, Joint, SolverSettings
+from jaxdem.scene._schema import Block, Domain, Excavation, InSitu, Joint, SolverSettings
 
 MAX_BLOCKS = 500_000
 """Most blocks a scene may generate (estimated from joint spacings and mesh size before
@@ -556,3 +556,49 @@ def _stiffness_warning(path: str, k: float) -> list[str]:
         return [f"{path}: {k:g} kPa/m is above {hi:g} kPa/m (1,000 GPa/m), stiffer than any "
                 "rock joint; stiffness is in kPa/m: was it written in Pa/m? (10 GPa/m is 1e7)"]
     return []
+
+
+def in_situ_strength_warnings(in_situ: InSitu | None, domain: Domain | None, zones,
+                              materials: dict) -> tuple[str, ...]:
+    """A gravity in-situ state that the intact rock cannot carry, one sentence a material.
+
+    With intact-rock cells (``domain.mesh_size``) the cells' contacts have the rock's
+    Mohr-Coulomb strength. Gravity gives sigma_v = gamma z and sigma_h = k0 sigma_v at
+    depth z below ``surface_y``; the rock fails where sigma_1 - N sigma_3 >= 2 c sqrt(N),
+    N = tan^2(45 + phi / 2): with k0 < 1 below z* = 2 c sqrt(N) / (gamma (1 - N k0))
+    (never where N k0 >= 1), with k0 > 1 below 2 c sqrt(N) / (gamma (k0 - N)). A domain
+    (or zone) that reaches below z* starts from stresses its rock cannot hold: the
+    initial state must find a plastic equilibrium before any excavation (slow, or no
+    answer within the iteration limit). Valid input, so a warning, not a refusal."""
+    if (in_situ is None or in_situ.mode != "gravity" or in_situ.surface_y is None
+            or domain is None or not domain.mesh_size):
+        return ()
+    regions = [(f"materials.{domain.material}", domain.material, float(np.min(domain.outline[:, 1])))]
+    regions += [(f"materials.{z.material}", z.material, float(np.min(z.vertices[:, 1])))
+                for z in zones]
+    out, seen = [], set()
+    for path, name, y_low in regions:
+        m = materials[name]
+        if name in seen or m.unit_weight <= 0.0:
+            continue
+        seen.add(name)
+        n = math.tan(math.radians(45.0 + m.friction_deg / 2.0)) ** 2
+        k0 = in_situ.k0
+        excess = (1.0 - n * k0) if k0 <= 1.0 else (k0 - n)
+        if excess <= 0.0:
+            continue
+        depth = 2.0 * m.cohesion * math.sqrt(n) / (m.unit_weight * excess)
+        deepest = in_situ.surface_y - y_low
+        if deepest <= depth:
+            continue
+        ucs = 2.0 * m.cohesion * math.sqrt(n)
+        out.append(
+            f"in_situ: at k0 = {k0:g} the initial stress exceeds the strength of {path} "
+            f"(cohesion {m.cohesion:g} kPa, friction {m.friction_deg:g} deg: uniaxial strength "
+            f"{ucs:.0f} kPa) below y = {in_situ.surface_y - depth:.1f} m, {depth:.1f} m deep "
+            f"(the rock reaches y = {y_low:g} m, sigma_v {m.unit_weight * deepest:.0f} kPa): "
+            "the intact rock there fails under its own weight before any excavation, and "
+            "the initial state has to find a plastic equilibrium (slow, or no answer within "
+            f"the iteration limit); a k0 between {1.0 / n:.2f} and {n:.2f} keeps it elastic at "
+            "any depth")
+    return tuple(out)

@@ -26,6 +26,7 @@ from jaxdem.scene._checks import (
     check_far,
     check_overlaps,
     overlap_depth,
+    in_situ_strength_warnings,
     plausibility_warnings,
 )
 from jaxdem.scene._fields import (
@@ -118,7 +119,8 @@ __all__ = [
 @dataclass(frozen=True, eq=False)
 class Scene:
     """A validated scene. ``data`` is the raw parsed TOML (for overrides); ``source`` its origin;
-    ``warnings`` the plausibility warnings (values most likely in the wrong unit)."""
+    ``warnings`` the plausibility warnings (values most likely in the wrong unit, an
+    in-situ state the intact rock cannot carry)."""
 
     name: str
     description: str
@@ -142,7 +144,9 @@ class Scene:
     stages: tuple[Stage, ...] = ()
     warnings: tuple[str, ...] = ()
     """Plausibility warnings: valid values most likely in the wrong unit, each starting
-    with the field's path (:func:`jaxdem.scene._checks.plausibility_warnings`)."""
+    with the field's path (:func:`jaxdem.scene._checks.plausibility_warnings`), and a
+    gravity in-situ state the intact rock cannot carry
+    (:func:`jaxdem.scene._checks.in_situ_strength_warnings`)."""
 
     def with_overrides(self, overrides: Mapping[str, float]) -> Scene:
         """A new Scene re-validated from ``data`` with numeric entries set by dotted path."""
@@ -247,7 +251,8 @@ def _parse(data: Any, source: str) -> Scene:
         supports=supports,
         water=water,
         stages=stages,
-        warnings=plausibility_warnings(materials, joints),
+        warnings=(plausibility_warnings(materials, joints)
+                  + in_situ_strength_warnings(in_situ, domain, zones, materials)),
     )
 
 
