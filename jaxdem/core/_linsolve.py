@@ -68,12 +68,20 @@ def stiffness_blocks(model: Model, sub: Sub, a, b, L, Rt, k, diag):
         group = lambda x: x.reshape(T, P, 2 * V, -1)  # noqa: E731
         first = a[:S].reshape(P, 2 * V)[:, 0]
         second = b[:S].reshape(P, 2 * V)[:, 0]
+        touching = jnp.any(sub.geo["active"].reshape(P, 2 * V), axis=1)
     else:
         # Each packed slot on its own; its pair's index in the detection's order.
         P = sub.packed["first"].shape[0]
         side1 = ((sub.packed["slot"] // V) % 2 == 1)[:, None]
         group = lambda x: x.reshape(T, S, 1, -1)  # noqa: E731
         first, second = sub.packed["first"], sub.packed["second"]
+        touching = jax.ops.segment_max(sub.geo["active"].astype(jnp.int32),
+                                       sub.packed["slot"] // (2 * V), P) > 0
+    # A candidate pair that does not touch couples nothing: its (zero) blocks go to its
+    # first block's diagonal, so that the matrix's pattern holds the touching pairs
+    # alone (most candidate pairs do not touch: on seed example 2, 4,300 of 8,678; a
+    # sparse factorisation pays for every entry of the pattern).
+    second = jnp.where(touching, second, first)
 
     def oriented(x):
         # Rows ordered (first block, second block) of the pair: side 1's halves swap.
