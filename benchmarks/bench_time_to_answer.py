@@ -40,15 +40,16 @@ Problems (scene files written to ``benchmarks/scenes/`` by this script):
   k_k = 1 / (h1/kn_i + h2/kn_i + 1/kn), h = 0.5 m (eqs. 4, 6, 7). The error is
   that of the middle column's top block's vertical displacement.
 - demo: ``jaxdem demo`` (no closed form).
-- grid40: the 40 x 40 grid (as grid10; DDA's time from issue 30).
+- grid40, grid70, grid100: the 40 x 40, 70 x 70 and 100 x 100 grids (as grid10; DDA's
+  times from issue 30).
 - tunnel: the 596-block standing tunnel of bench_scaling.py (spacing 1.35 m;
   no closed form).
 - ex4wet, ex2: seed examples 4 (wet slope and tunnel, 225 blocks) and 2 (tunnel and
   shear zone, 1,193 blocks) as shipped in examples/ (no closed form).
 
 Reference: Shi's DDA (the public ntdda C code) on the same machine kind,
-solve only: incline 0.005 s, 10 x 10 0.17 s, 20 x 20 1.74 s (issue 18), 40 x 40 5.95 s
-(issue 30).
+solve only: incline 0.005 s, 10 x 10 0.17 s, 20 x 20 1.74 s (issue 18), 40 x 40 5.95 s,
+70 x 70 78.7 s, 100 x 100 439 s (issue 30).
 
     PYTHONPATH=. python benchmarks/bench_time_to_answer.py                 # all, 3 repeats
     PYTHONPATH=. python benchmarks/bench_time_to_answer.py --cases incline grid10 --repeats 5
@@ -72,7 +73,8 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 SCENES = HERE / "scenes"
-DDA = {"incline": 0.005, "grid10": 0.17, "grid20": 1.74, "grid40": 5.95}
+DDA = {"incline": 0.005, "grid10": 0.17, "grid20": 1.74, "grid40": 5.95, "grid70": 78.7,
+       "grid100": 439.0}
 EXAMPLES = {"ex4wet": "seed_example4_slope_wet.toml", "ex2": "seed_example2_tunnel.toml"}
 ROCK = {"E": 1.0e7, "nu": 0.25, "unit_weight": 25.0}
 JOINT = {"kn": 1.0e6, "ks": 5.0e5, "friction_deg": 35.0, "cohesion": 0.0}
@@ -166,7 +168,8 @@ def write_scenes() -> dict[str, Path]:
 
     SCENES.mkdir(exist_ok=True)
     scenes = {"incline": incline_scene(), "grid10": grid_scene(10), "grid20": grid_scene(20),
-              "grid40": grid_scene(40), "tunnel": scaling_scene(1.35, "auto"),
+              "grid40": grid_scene(40), "grid70": grid_scene(70), "grid100": grid_scene(100),
+              "tunnel": scaling_scene(1.35, "auto"),
               # The "similar" scenes: other block counts in the same size classes.
               "incline-similar": incline_scene(stacked=True),
               "grid10-similar": grid_scene(11, 9), "grid20-similar": grid_scene(21, 19)}
