@@ -13,13 +13,12 @@ eps M only shapes the path: the converged answer solves R = 0 whatever eps
 is, and where K_t is singular (a free block, a sliding mechanism) it turns
 the step into a finite move along the mechanism, which the step length
 bounds. Where slots slip, the elastic (secant) matrix converges only
-linearly; once it has reduced R with the states held, the slip tangent
+linearly; once it has reduced R twice with the states held, the slip tangent
 is tried (on the direct paths the exact one, with the coupling of shear to
 normal force), its steps shortened by a backtracking line search on the
 squared residuals, and kept while it reduces R. A tried step that would
 leave the step length is not taken, and the secant takes over for the rest of
-the sub-step; where its rate holds steady, each step is extrapolated by
-Aitken's rule. When the secant iteration stalls (R stays put: a block just
+the sub-step. When the secant iteration stalls (R stays put: a block just
 past limit equilibrium, whose small residual would move it only by
 R / (eps k) an iteration), the slip tangent is used and the step goes the
 whole step length along the mechanism, so that it is followed and reported,
@@ -109,9 +108,6 @@ FREEZE_AFTER = 12
 #: A stall whose residual changes by less than this (relative) an iteration is flat: a
 #: block that slides free, its out-of-balance force the same wherever it is.
 FLAT = 1e-4
-#: Rates of the secant iteration (residual over the last) between which a steady rate is
-#: extrapolated (Aitken): faster ones need no help, slower ones are not one mode.
-AITKEN_RATES = (0.5, 0.95)
 #: Halvings of a Newton step that the line search tries before it takes the whole step.
 LINE_SEARCH_HALVINGS = 8
 #: Armijo's sufficient decrease of the merit, per unit of step.
@@ -133,8 +129,7 @@ class Iterate(NamedTuple):
     overshot in this sub-step, ``flat`` how many stalled iterations in a row left the
     residual as it was (to :data:`FLAT`), ``lost`` the slip-tangent step of such a
     flat stall did not reduce the residual in this sub-step (a stall is then followed
-    as a mechanism at once), ``rate`` the residual over the last after a plain
-    secant step (0 after any other), ``boosted`` the last step was extrapolated.
+    as a mechanism at once).
     """
 
     du: jax.Array
@@ -156,8 +151,6 @@ class Iterate(NamedTuple):
     untried: jax.Array
     lost: jax.Array
     flat: jax.Array
-    rate: jax.Array
-    boosted: jax.Array
 
 
 def _newton(model: Model, sub: Sub, st0):
@@ -165,7 +158,7 @@ def _newton(model: Model, sub: Sub, st0):
 
     The elastic (secant) matrix first; the slip tangent (with the slip coupling on
     the direct paths: :func:`jaxdem.core._springs.with_slip_coupling`) once the
-    secant has reduced the residual with the states held and slots slip,
+    secant has reduced the residual twice with the states held and slots slip,
     kept while it reduces the residual; on the direct paths a backtracking line
     search on the merit sum((|R_b| / tol_b)^2) over the free blocks takes the first
     of 1, 1/2, 1/4, ... that meets Armijo's condition (the whole step where none
@@ -231,7 +224,7 @@ def _newton(model: Model, sub: Sub, st0):
                                  jnp.where(reassign, ev["law_state"], c.frozen_state))
         # The secant matrix (slipping slots keep their shear spring) converges
         # only linearly where slots slip (a rate of 0.96 an iteration is common).
-        # Once it has reduced the residual with the states held and
+        # Once it has reduced the residual twice in a row with the states held and
         # slots slipping, the slip tangent is tried, and kept while it reduces the
         # residual and no state changes: on the direct paths with the slip
         # coupling (the exact tangent of the held states), on the cg path its
@@ -250,7 +243,7 @@ def _newton(model: Model, sub: Sub, st0):
         if model.n_bolts:
             slipping |= jnp.any(sub.bolt["active"] & (ev["bolt_state"] != 0))
         untried = c.untried & ~failed
-        trying = still & untried & slipping & (c.trying | (settled >= 1)
+        trying = still & untried & slipping & (c.trying | (settled >= 2)
                                                | (c.tangent & progress))
         # A flat stall (the residual the same to FLAT, iteration after iteration: a
         # block sliding free, its out-of-balance force the same wherever it is)
@@ -295,18 +288,6 @@ def _newton(model: Model, sub: Sub, st0):
         if model.lanes is not None:
             idle = jax.lax.psum(jnp.where(converged | c.done, 0, 1), model.lanes) == 0
         ddu = jax.lax.cond(idle, lambda: jnp.zeros_like(c.du), newton_step)
-        # With the states held the secant iteration is a stationary linear one
-        # (once a tried tangent has failed, for the rest of the sub-step: seed
-        # example 4's loading spent 75 iterations at a rate of 0.82). Once its
-        # rate (residual over the last) holds steady, the error is one mode
-        # shrinking by that rate an iteration, and the step that removes it is
-        # this one over (1 - rate): Aitken's extrapolation, from the second of two
-        # plain secant steps with rates within 1% after five reductions in a row.
-        plain = still & ~c.tangent & ~c.boosted & jnp.isfinite(c.rprev)
-        rate = jnp.where(plain, rnorm / c.rprev, 0.0)
-        steady = (plain & ~tangent & (settled >= 5) & (rate > AITKEN_RATES[0])
-                  & (rate < AITKEN_RATES[1]) & (jnp.abs(rate - c.rate) <= 0.01 * rate))
-        ddu = jnp.where(steady, ddu / (1.0 - rate), ddu)
         # Still no progress: a mechanism whose residual is small (a block just
         # past limit equilibrium) would only creep, by R / (eps k) an
         # iteration, and run out of iterations instead of showing that it
@@ -366,8 +347,7 @@ def _newton(model: Model, sub: Sub, st0):
                        frozen_state=frozen_state, it=it, done=done, converged=converged,
                        clipped=clipped & ~converged, finite=finite, rnorm=rnorm * model.tol,
                        rprev=rnorm, stall=stall, settled=settled, trying=trying,
-                       tangent=tangent, untried=untried, lost=lost, flat=flat,
-                       rate=rate, boosted=steady)
+                       tangent=tangent, untried=untried, lost=lost, flat=flat)
 
     inf = jnp.array(jnp.inf, dtype)
     init = Iterate(du=jnp.zeros((N, model.ndof), dtype), st=st0, flips=zeros_s,
@@ -376,7 +356,7 @@ def _newton(model: Model, sub: Sub, st0):
                    clipped=jnp.array(False), finite=jnp.array(True), rnorm=inf, rprev=inf,
                    stall=jnp.array(0), settled=jnp.array(0), trying=jnp.array(False),
                    tangent=jnp.array(False), untried=jnp.array(True), lost=jnp.array(False),
-                   flat=jnp.array(0), rate=jnp.array(0.0, dtype), boosted=jnp.array(False))
+                   flat=jnp.array(0))
     return jax.lax.while_loop(lambda c: ~c.done, body, init)
 
 
