@@ -226,10 +226,10 @@ def test_the_gpus_choice_converges_on_the_seed_examples(example):
 def test_cg_converges_on_seed_example4_to_the_sparse_answer():
     """"cg" (matrix-free conjugate gradients: no slip coupling, so its Newton converges
     only linearly where contacts slip) ran into the iteration limit on seed example 4
-    (issue 30). With the seventh session's Newton (a flat stall followed as a mechanism,
-    Aitken's step on a steady secant rate) it converges: 655 iterations against the
-    sparse path's 362, monitors within 0.2% (the path differs only where joints slip,
-    through friction)."""
+    (issue 30). With the seventh session's Newton (no shear spring where a slipping
+    contact has no strength, a flat stall followed as a mechanism) it converges: 675
+    iterations against the sparse path's 440, monitors within 0.2% (the path differs
+    only where joints slip, through friction)."""
     scene = jaxdem.load_scene(EXAMPLES / "seed_example4_slope_wet.toml")
     on_cg = jaxdem.solve(parse_scene(_with_solver(scene.data, linear_solver="cg")))
     direct = jaxdem.solve(scene)
