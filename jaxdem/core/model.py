@@ -510,8 +510,8 @@ def linear_solver_for(choice: str, unknowns: int, *, platform: str | None = None
       "dense" (0.31 for a loop of single solves);
     - above ``_DENSE_UP_TO_ACCELERATOR``, on a GPU or TPU: "cg", jittable, memory
       linear in the contacts, but without the slip coupling (more Newton iterations
-      where slip governs: seed examples 2 and 4 converge to the direct answer in 1.5
-      and 1.8 times as many); sparsax's solvers run on the CPU only.
+      where slip governs: seed examples 2 and 4 converge to the direct answer in about
+      1.5 times as many); sparsax's solvers run on the CPU only.
 
     Args:
       choice: "auto", "dense", "sparse" or "cg"; anything but "auto" is kept.
