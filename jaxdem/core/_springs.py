@@ -226,8 +226,9 @@ def stiffness_terms(model: Model, sub: Sub, ev, consistent):
     Closed slots carry both springs: for a slipping slot this is the elastic
     (secant) stiffness, which keeps every step of the order of the elastic
     compliance, unless its strength is under :data:`SLIP_SECANT` of its trial
-    shear force (a joint at zero normal force: no shear spring). With ``consistent``, slipping slots lose their shear spring
-    (and yielded bolts theirs): the tangent of the slip law (its symmetric
+    shear force (a joint at zero normal force: no shear spring). With
+    ``consistent``, slipping slots lose their shear spring (and yielded bolts
+    theirs): the tangent of the slip law (its symmetric
     part; the direct solvers add the coupling d fs / d fn = tan(phi) while
     it is tried, :func:`with_slip_coupling`; the cg path does without),
     tried once the states hold so that slip settles in a few iterations, and

@@ -573,7 +573,8 @@ def in_situ_strength_warnings(in_situ: InSitu | None, domain: Domain | None, zon
     if (in_situ is None or in_situ.mode != "gravity" or in_situ.surface_y is None
             or domain is None or not domain.mesh_size):
         return ()
-    regions = [(f"materials.{domain.material}", domain.material, float(np.min(domain.outline[:, 1])))]
+    regions = [(f"materials.{domain.material}", domain.material,
+                float(np.min(domain.outline[:, 1])))]
     regions += [(f"materials.{z.material}", z.material, float(np.min(z.vertices[:, 1])))
                 for z in zones]
     out, seen = [], set()

@@ -25,8 +25,8 @@ from jaxdem.scene._checks import (
     check_coordinates,
     check_far,
     check_overlaps,
-    overlap_depth,
     in_situ_strength_warnings,
+    overlap_depth,
     plausibility_warnings,
 )
 from jaxdem.scene._fields import (
