@@ -28,6 +28,7 @@ from jaxdem.core.state import OPEN, SLIP, STICK, Model
 #: no shear spring in the secant matrix (:func:`stiffness_terms`).
 SLIP_SECANT = 0.01
 
+
 @functools.partial(jax.tree_util.register_dataclass, meta_fields=[], data_fields=[
     "geo", "prop", "Bn", "Bs", "fs_old", "fn0", "failed", "pw", "bolt", "load", "free", "stress",
     "Kc", "packed"])
