@@ -498,7 +498,7 @@ def linear_solver_for(choice: str, unknowns: int, *, platform: str | None = None
       and 7 times at 1,788;
     - (``_CG_UP_TO``: a band above it where a single CPU solve would take "cg". It is
       empty: "cg" has no slip coupling, takes more Newton iterations where joints
-      slip, and each is far slower on a CPU: seed example 2 690 s against 28 s.)
+      slip, and each is far slower on a CPU: seed example 2 600 s against 25 s.)
     - above that, on a CPU: "sparse" (SuiteSparse's CHOLMOD or KLU inside the program,
       through sparsax; SciPy's SuperLU through a host callback where sparsax is not
       installed), 4 to 7 times faster than the iterative path at 2,000 to 10,000
