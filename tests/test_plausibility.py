@@ -85,12 +85,12 @@ def test_overrides_are_checked_too():
 
 @pytest.mark.parametrize("path", BUNDLED, ids=lambda p: p.name)
 def test_the_bundled_examples_give_no_warning(path):
+    warnings = load_scene(path).warnings
     if path.name.startswith("seed_example3"):
         # The paper's K0 = 0 under 48 m of rock: test_in_situ_beyond_the_rock_strength.
-        assert len(load_scene(path).warnings) == 1
-        assert load_scene(path).warnings[0].startswith("in_situ: at k0 = 0")
+        assert len(warnings) == 1 and warnings[0].startswith("in_situ: at k0 = 0")
     else:
-        assert load_scene(path).warnings == ()
+        assert warnings == ()
 
 
 def test_in_situ_beyond_the_rock_strength():
