@@ -410,8 +410,8 @@ class _Driver:
         in-situ preload (:meth:`preload`): on two cores neither waits for the
         other. ``force`` (1 + p, N, D) gives the loads' shapes.
         """
-        # The tracing (or a stored program's load) is this thread's time, and counts as
-        # compilation; the XLA compilation that follows runs beside what comes next.
+        # The tracing is this thread's time, and counts as compilation; the XLA
+        # compilation (or a stored program's load) runs beside what comes next.
         self.compile_s += prefetch(increment, self.model, self.state, self.loads(force)[0],
                                    quick=self.quick)
         if self.layout.monitors:

@@ -269,21 +269,34 @@ def _key(fn, args, static, quick):
 
 
 def _lower(fn, args, static, quick, leaves, tree):
-    """``fn``'s stored program for these shapes, or a function that compiles (and stores) it.
-
-    Returns (program, None) or (None, finish): the tracing and lowering, in
-    Python, are done here; ``finish()`` is the XLA compilation, which holds no
-    Python lock and may run on another thread.
+    """A function that gives ``fn``'s program for these shapes, and holds no Python lock
+    (it may run on another thread): the load of a stored program (XLA parses and links
+    it: 0.5 s for the demo's increment, which :func:`prefetch` thus runs beside the
+    in-situ preload and the monitors' programs), or the XLA compilation (and store), the
+    tracing and lowering (in Python) being done here. A stored program that does not
+    load is traced and compiled by that function instead.
     """
     t0 = time.perf_counter()
     name, directory = _ON_DISK.get(fn), _program_dir()
     path = None
     if name is not None and directory is not None:
         path = directory / f"{_disk_key(name, tree, leaves, static, _options(quick))}.pkl"
-    compiled = None if path is None else _load_program(path)
-    if compiled is not None:
-        _count(0.0, time.perf_counter() - t0)
-        return compiled, None
+    if path is not None and path.is_file():
+        def load():
+            t = time.perf_counter()
+            compiled = _load_program(path)
+            if compiled is not None:
+                _count(0.0, time.perf_counter() - t)
+                return compiled
+            return _compiler(fn, args, static, quick, path)()
+
+        return load
+    return _compiler(fn, args, static, quick, path)
+
+
+def _compiler(fn, args, static, quick, path):
+    """Trace and lower ``fn`` now; returns the XLA compilation (and store at ``path``)."""
+    t0 = time.perf_counter()
     lowered = fn.lower(*args, **static)
     t1 = time.perf_counter()
     _count(t1 - t0, 0.0)
@@ -305,7 +318,7 @@ def _lower(fn, args, static, quick, leaves, tree):
         _count(0.0, time.perf_counter() - t2)
         return compiled
 
-    return None, finish
+    return finish
 
 
 def while_compiling(task) -> None:
@@ -315,9 +328,9 @@ def while_compiling(task) -> None:
     will be needed later costs no waiting then on a machine with a second core:
     the command line imports matplotlib and loads its fonts for the figures
     (0.3 s of a 3 s cold run of a small scene). Started earlier, the task
-    would only share the lock with the tracing; loading a stored program holds
-    the lock too (the figures' warm-up during a load made a warm run of the
-    incline slower: 1.78 -> 2.01 s). A task is run at most once; one
+    would only share the lock with the tracing; a load of a stored program does not
+    start it (the figures' warm-up beside a load made a warm run of the incline
+    slower: 1.78 -> 2.01 s). A task is run at most once; one
     that never starts (every program was loaded) is dropped, and its work is
     done where it is needed. Its errors are ignored for the same reason.
     """
@@ -357,8 +370,8 @@ def prefetch(fn, *args, quick: bool = False, **static) -> float:
     arguments need only have the shapes of the later call. Nothing is started
     for a program already there. One program is prefetched at a time.
 
-    Returns the seconds this call spent (tracing, or loading a stored
-    program); 0.0 when the program was there already.
+    Returns the seconds this call spent (tracing; a stored program is loaded in the
+    background too); 0.0 when the program was there already.
     """
     key, leaves, tree = _key(fn, args, static, quick)
     with _LOCK:
@@ -366,11 +379,8 @@ def prefetch(fn, *args, quick: bool = False, **static) -> float:
             return 0.0
     t0 = time.perf_counter()
     try:
-        compiled, finish = _lower(fn, args, static, quick, leaves, tree)
+        finish = _lower(fn, args, static, quick, leaves, tree)
     except Exception:  # noqa: BLE001 - the call that needs the program reports it
-        return time.perf_counter() - t0
-    if compiled is not None:
-        _remember(key, compiled)
         return time.perf_counter() - t0
     with _LOCK:
         if not _BACKGROUND:
@@ -438,9 +448,7 @@ def compiled_program(fn, *args, quick: bool = False, **static):
             except Exception:  # noqa: BLE001 - compile here, where an error reaches the caller
                 compiled = None
         if compiled is None:
-            compiled, finish = _lower(fn, args, static, quick, leaves, tree)
-            if compiled is None:
-                compiled = finish()
+            compiled = _lower(fn, args, static, quick, leaves, tree)()
         _remember(key, compiled)
     except BaseException as err:
         _done_compiling(key, mine, error=err)
