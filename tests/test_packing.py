@@ -10,12 +10,15 @@ overflow and the driver doubles the places and redoes it: nothing is left out.
 
 import dataclasses
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from scenes import jointed_tunnel
 
 from jaxdem import solver
 from jaxdem.core import model as model_mod
+from jaxdem.core._substep import pack_slots, pair_places, prepare_substep
+from jaxdem.core.loads import make_loads
 from jaxdem.scene import parse_scene
 
 
@@ -64,3 +67,35 @@ def test_more_touching_slots_than_places_grow_the_places_and_redo_the_increment(
     assert [r["iterations"] for r in grown.records] == [r["iterations"] for r in full.records]
     np.testing.assert_allclose(np.asarray(grown.state.u), np.asarray(full.state.u), rtol=0,
                                atol=1e-9 * np.abs(np.asarray(full.state.u)).max())
+
+
+def test_each_pairs_places_hold_its_touching_slots_and_one_more_overflows():
+    """The assembly sums each pair's touching slots from ``pack_slots``'s grid: every
+    grid entry is a packed place of that pair, and together they are all its touching
+    slots. A pair with more touching slots than its places (m = 4 with two places per
+    candidate pair) flags the overflow that doubles the places, although the packed
+    list itself has room."""
+    model, state, _ = model_mod.build(parse_scene(jointed_tunnel(water=False, bolts=False)))
+    model = dataclasses.replace(model, slots_per_pair=2)
+    loads = make_loads(model, model.f_ext)
+    mdl, sub, st0, _, _ = prepare_substep(model, state, loads)
+    packed, _, sid, too_many = pack_slots(mdl, sub, st0)
+    assert not bool(too_many)
+    two_v = 2 * model.n_vertices
+    active = np.asarray(sub.geo["active"])
+    grid, sid = np.asarray(packed.packed["grid"]), np.asarray(sid)
+    assert grid.shape[1] == pair_places(model) == 4
+    for p in range(grid.shape[0]):
+        places = grid[p][grid[p] < sid.shape[0]]
+        assert sorted(sid[places]) == list(np.flatnonzero(active[p * two_v:(p + 1) * two_v])
+                                           + p * two_v)
+    # Five touching slots on one pair (the list has room: C = 2 P places).
+    crowded = active.copy()
+    crowded[:5] = True
+    assert crowded.sum() <= 2 * grid.shape[0]
+    sub5 = dataclasses.replace(sub, geo=dict(sub.geo, active=jnp.asarray(crowded)))
+    assert bool(pack_slots(mdl, sub5, st0)[3])
+    crowded[4] = False
+    crowded[5:two_v] = False
+    sub4 = dataclasses.replace(sub, geo=dict(sub.geo, active=jnp.asarray(crowded)))
+    assert not bool(pack_slots(mdl, sub4, st0)[3])

@@ -63,41 +63,38 @@ def stiffness_blocks(model: Model, sub: Sub, a, b, L, Rt, k, diag):
     T = (k.shape[0] - n_bolt_terms(model)) // S
     if sub.packed is None:
         P = S // (2 * V)
-        # (T S, 2 D) rows -> (T, P, 2 V, 2 D); side 1 of a pair has its vertex block second.
-        side1 = (jnp.arange(2 * V) >= V)[None, :]
-        group = lambda x: x.reshape(T, P, 2 * V, -1)  # noqa: E731
-        first = a[:S].reshape(P, 2 * V)[:, 0]
-        second = b[:S].reshape(P, 2 * V)[:, 0]
-        touching = jnp.any(sub.geo["active"].reshape(P, 2 * V), axis=1)
+        grid = jnp.arange(S).reshape(P, 2 * V)
+        slot = jnp.arange(S)
+        first, second = a[:S:2 * V], b[:S:2 * V]
     else:
-        # Each packed slot on its own; its pair's index in the detection's order.
-        P = sub.packed["first"].shape[0]
-        side1 = ((sub.packed["slot"] // V) % 2 == 1)[:, None]
-        group = lambda x: x.reshape(T, S, 1, -1)  # noqa: E731
+        # Each pair's packed slots side by side (:func:`jaxdem.core._substep.pack_slots`).
+        grid, slot = sub.packed["grid"], sub.packed["slot"]
         first, second = sub.packed["first"], sub.packed["second"]
-        touching = jax.ops.segment_max(sub.geo["active"].astype(jnp.int32),
-                                       sub.packed["slot"] // (2 * V), P) > 0
+    touching = jnp.any(jnp.append(sub.geo["active"], False)[grid], axis=1)
     # A candidate pair that does not touch couples nothing: its (zero) blocks go to its
     # first block's diagonal, so that the matrix's pattern holds the touching pairs
     # alone (most candidate pairs do not touch: on seed example 2, 4,300 of 8,678; a
     # sparse factorisation pays for every entry of the pattern).
     second = jnp.where(touching, second, first)
+    side1 = ((slot // V) % 2 == 1)[None, :, None]
 
-    def oriented(x):
-        # Rows ordered (first block, second block) of the pair: side 1's halves swap.
-        x = group(x[:T * S])
-        swapped = jnp.concatenate([x[..., D:], x[..., :D]], axis=-1)
-        return jnp.where(side1[None, :, :, None], swapped, x)
+    def by_pair(x):
+        # (T S, 2 D) rows -> (T, P, m, 2 D): each pair's slots, their rows ordered (first
+        # block, second block) of the pair (side 1's halves swap), zero rows for the
+        # empty places (index S of the grid).
+        x = x[:T * S].reshape(T, S, 2 * D)
+        x = jnp.where(side1, jnp.concatenate([x[..., D:], x[..., :D]], axis=-1), x)
+        return jnp.concatenate([x, jnp.zeros((T, 1, 2 * D), x.dtype)], axis=1)[:, grid]
 
-    # Sum over the slots of each pair of k L R^T: elementwise products and a
-    # reduction (XLA fuses them), not P tiny matrix products. The T groups of terms
-    # are added one by one: XLA's CPU reduction of a (T, ..., 2 D, 2 D) product over
-    # its first axis took 40 times as long (10 ms against 0.24 on the demo tunnel's
-    # packed slots, most of a Newton iteration).
-    kL, R = oriented(k[:T * S, None] * L[:T * S]), oriented(Rt)
-    Kp = sum(kL[t][..., :, None] * R[t][..., None, :] for t in range(T)).sum(axis=1)
-    if sub.packed is not None:
-        Kp = jax.ops.segment_sum(Kp, sub.packed["slot"] // (2 * V), P)
+    # Sum over the slots of each pair of k L R^T: elementwise products and a sum written
+    # out (XLA fuses them into one loop), not P tiny matrix products, nor a scatter of
+    # each slot's (2 D, 2 D) product: on seed example 2's 36,864 packed places that
+    # product alone is 42 MB, and its segment sum took 23 ms against 4 (of a Newton
+    # iteration's 70); XLA's CPU reduction over an axis of a (T, ...) product also took
+    # 40 times as long (10 ms against 0.24 on the demo tunnel).
+    kL, R = by_pair(k[:, None] * L), by_pair(Rt)
+    Kp = sum(kL[t, :, i, :, None] * R[t, :, i, None, :]
+             for t in range(T) for i in range(grid.shape[1]))
     # The rest (bolts): a (2 D, 2 D) block per term.
     a, b, L, Rt, k = a[T * S:], b[T * S:], L[T * S:], Rt[T * S:], k[T * S:]
     Kp = jnp.concatenate([Kp, k[:, None, None] * L[:, :, None] * Rt[:, None, :]])

@@ -47,7 +47,8 @@ class Sub:
     the detection's P x 2 x V, in its order; else the touching slots alone
     (:func:`jaxdem.core._substep.pack_slots`): ``slot`` (C,) the index of each among the
     P x 2 x V (P x 2 x V for an empty place), ``first`` and ``second`` (P,) the two blocks
-    of each candidate pair.
+    of each candidate pair, ``grid`` (P, m) the places of each pair's touching slots in
+    the packed list (C where a pair has fewer than m).
     """
 
     geo: dict
@@ -221,7 +222,7 @@ def block_scale(model: Model, sub: Sub, ev=None):
     return s
 
 
-def stiffness_terms(model: Model, sub: Sub, ev, consistent):
+def stiffness_terms(model: Model, sub: Sub, ev, consistent, near=None):
     """The iteration matrix K_t = sum_m k_m B_m B_m^T as rank-one terms (a, b, B, k).
 
     Closed slots carry both springs: for a slipping slot this is the elastic
@@ -235,11 +236,12 @@ def stiffness_terms(model: Model, sub: Sub, ev, consistent):
     tried once the states hold so that slip settles in a few iterations, and
     used once the elastic iteration stalls so that a sliding mechanism makes
     a finite move (bounded by the step length) instead of creeping at
-    elastic speed.
+    elastic speed. ``near`` (S,): open slots that keep their normal spring (an open
+    slot within a few hysteresis bands of closing, :data:`jaxdem.core._substep.NEAR`).
     """
     st = ev["state"]
     closed = sub.geo["active"] & (st != OPEN)
-    kn = jnp.where(closed, sub.prop["kn"], 0.0)
+    kn = jnp.where(closed if near is None else closed | near, sub.prop["kn"], 0.0)
     ks = jnp.where(closed & ((st == STICK) | ~consistent), sub.prop["ks"], 0.0)
     # A slipping spring whose strength is under a hundredth of its trial shear
     # force (a joint at zero normal force) carries none of the shear that its

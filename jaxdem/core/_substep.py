@@ -108,6 +108,10 @@ FREEZE_AFTER = 12
 #: A stall whose residual changes by less than this (relative) an iteration is flat: a
 #: block that slides free, its out-of-balance force the same wherever it is.
 FLAT = 1e-4
+#: An open slot whose spring, closed over its gap, would carry less than this many
+#: hysteresis bands (a band is a tenth of the tolerance of the smaller block it touches)
+#: keeps its normal spring in the secant matrix (:func:`_newton`).
+NEAR = 10.0
 #: Halvings of a Newton step that the line search tries before it takes the whole step.
 LINE_SEARCH_HALVINGS = 8
 #: Armijo's sufficient decrease of the merit, per unit of step.
@@ -259,8 +263,22 @@ def _newton(model: Model, sub: Sub, st0):
         lost = c.lost | (c.tangent & ~c.trying & ~progress & (c.flat >= 2))
         tangent = trying | (stall >= 3)
 
+        # Joints between the columns of a stack carry nothing: their slots touch at
+        # gaps of the order of the iteration's own error, and hundreds of them opened
+        # and closed in every iteration of a 100 x 100 grid. Each opening let its
+        # blocks move sideways on nothing stiffer than eps M, the next step closed it
+        # again, and the residual hovered at 1-5 tolerances (iteration limit, or
+        # converged only as round-off allowed: 36 iterations, the same matrix summed in
+        # another order 242). An open slot within NEAR bands of closing keeps its
+        # normal spring in the secant matrix (not in its force: the residual is the
+        # law's): a step then opens it no further than the forces ask. 100 x 100: 18
+        # iterations, 70 x 70 15 -> 9; the tangent (a mechanism, tried slip) keeps
+        # open slots open.
+        near = (sub.geo["active"] & (ev["state"] == OPEN) & ~tangent
+                & (ev["gap"] >= 0.0) & (sub.prop["kn"] * ev["gap"] < NEAR * band))
+
         def newton_step():
-            terms = stiffness_terms(model, sub, ev, tangent)
+            terms = stiffness_terms(model, sub, ev, tangent, near)
             if not direct:
                 # Inexact Newton (Eisenstat-Walker, choice 2): solve as accurately
                 # as Newton's own progress warrants, and no more accurately than
@@ -593,10 +611,14 @@ def pack_slots(model: Model, sub: Sub, st0):
     the contact margin) carry springs, and the geometry does not change during a
     sub-step's Newton iteration: it works on them alone (a tenth of S on the demo tunnel:
     4,478 of 36,864), which makes its evaluations and its assembly that much cheaper.
-    Empty places are inactive with zero rows. Returns (packed sub, its starting states,
-    the (C,) slot indices, S for an empty place; too many: more touching slots than C, so
-    that the increment ends with a capacity overflow and the driver doubles
-    ``slots_per_pair``). Where C >= S, ``sub`` itself and None.
+    Empty places are inactive with zero rows. The packed list keeps the detection's
+    order, so each pair's slots lie side by side: ``grid`` (P, m) gives their places, m =
+    :func:`pair_places`, for the assembly's sum over a pair's springs
+    (:func:`jaxdem.core._linsolve.stiffness_blocks`). Returns (packed sub, its starting
+    states, the (C,) slot indices, S for an empty place; too many: more touching slots
+    than C, or a pair with more than m, so that the increment ends with a capacity
+    overflow and the driver doubles ``slots_per_pair``). Where C >= S, ``sub`` itself
+    and None.
     """
     S = st0.shape[0]
     P = S // (2 * model.n_vertices)
@@ -605,6 +627,13 @@ def pack_slots(model: Model, sub: Sub, st0):
         return sub, st0, None, jnp.array(False)
     count = jnp.sum(sub.geo["active"])
     sid = jnp.nonzero(sub.geo["active"], size=C, fill_value=S)[0]
+    # The pair of each place (P for an empty one: sorted), and each pair's run of places.
+    pair_of = sid // (2 * model.n_vertices)
+    start = jnp.searchsorted(pair_of, jnp.arange(P), side="left")
+    end = jnp.searchsorted(pair_of, jnp.arange(P), side="right")
+    m = pair_places(model)
+    grid = start[:, None] + jnp.arange(m)
+    grid = jnp.where(grid < end[:, None], grid, C)
     real = sid < S
     at = jnp.minimum(sid, S - 1)
 
@@ -619,8 +648,19 @@ def pack_slots(model: Model, sub: Sub, st0):
                  Bs=take(sub.Bs), fs_old=take(sub.fs_old), fn0=take(sub.fn0),
                  failed=take(sub.failed), pw=take(sub.pw), bolt=sub.bolt, load=sub.load,
                  free=sub.free, stress=sub.stress, Kc=sub.Kc,
-                 packed=dict(slot=sid, first=pairs(sub.geo["a"]), second=pairs(sub.geo["b"])))
-    return packed, st0[at], sid, count > C
+                 packed=dict(slot=sid, first=pairs(sub.geo["a"]), second=pairs(sub.geo["b"]),
+                             grid=grid))
+    return packed, st0[at], sid, (count > C) | jnp.any(end - start > m)
+
+
+def pair_places(model: Model) -> int:
+    """How many touching slots of one pair the assembly sums (:func:`pack_slots`'s grid):
+    twice ``slots_per_pair``, at most 2 V. Two convex blocks touch at one or two points
+    (a corner, the ends of a face against a face), each seen from one side or both: four
+    slots, a fifth where a third vertex lies within the contact margin (the bundled
+    examples: 146 of 14,117 touching pairs of seed example 2, none with six). A pair with
+    more flags a capacity overflow, and the places double with ``slots_per_pair``."""
+    return min(2 * model.slots_per_pair, 2 * model.n_vertices)
 
 
 #: The narrow phase's fields of the vertices without a spring near another block's node.
