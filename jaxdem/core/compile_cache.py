@@ -276,7 +276,6 @@ def _lower(fn, args, static, quick, leaves, tree):
     tracing and lowering (in Python) being done here. A stored program that does not
     load is traced and compiled by that function instead.
     """
-    t0 = time.perf_counter()
     name, directory = _ON_DISK.get(fn), _program_dir()
     path = None
     if name is not None and directory is not None:
