@@ -18,7 +18,9 @@ jaxdem/cli/__init__.py) and ``result.json``'s timing:
   argparse), measured from the launch of the process;
 - load: reading and validating the scene file; import: ``jaxdem.solver`` (JAX);
 - build: model and device arrays; trace: tracing and lowering of the increment
-  program; compile: XLA compilation of it (a cache load when warm);
+  program; compile: ``result.json``'s ``timing.compile_s``, the time the solve waited
+  for its programs (XLA compilation, or a cache load when warm; both run on a
+  background thread beside the in-situ preload, so their own time can be longer);
 - solve: running the increments; other: the rest of ``solve`` (small programs
   compiled at first use, the in-situ preload, monitors, the result);
 - answer: result.json and the summary; figures: the four PNGs.
@@ -308,7 +310,7 @@ def run_once(case: str, path: Path | None, cache: str, figures: bool) -> dict:
     solve_total = m["solved"] - m["imported"]
     row = dict(wall=wall, start=m["start"] - t0, load=m["loaded"] - m["start"],
                imp=m["imported"] - m["loaded"], build=t["build_s"], trace=inc["lower_s"],
-               compile=inc["compile_s"], solve=t["solve_s"],
+               compile=t["compile_s"], solve=t["solve_s"],
                answer=m["answered"] - m["solved"], figures=m["figures"] - m["answered"],
                blocks=len(result["blocks"]), error=error_of(case, result),
                status=result.get("status", "?"))
