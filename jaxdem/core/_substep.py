@@ -627,10 +627,10 @@ def pack_slots(model: Model, sub: Sub, st0):
         return sub, st0, None, jnp.array(False)
     count = jnp.sum(sub.geo["active"])
     sid = jnp.nonzero(sub.geo["active"], size=C, fill_value=S)[0]
-    # The pair of each place (P for an empty one: sorted), and each pair's run of places.
-    pair_of = sid // (2 * model.n_vertices)
-    start = jnp.searchsorted(pair_of, jnp.arange(P), side="left")
-    end = jnp.searchsorted(pair_of, jnp.arange(P), side="right")
+    # The pair of each place (P for an empty one: sorted), and each pair's run of places
+    # [start, end): pair p's run ends where pair p + 1's begins.
+    bounds = jnp.searchsorted(sid // (2 * model.n_vertices), jnp.arange(P + 1))
+    start, end = bounds[:-1], bounds[1:]
     m = pair_places(model)
     grid = start[:, None] + jnp.arange(m)
     grid = jnp.where(grid < end[:, None], grid, C)
