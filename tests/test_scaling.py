@@ -68,11 +68,14 @@ def test_sparse_direct_solve_agrees_with_dense_lu(tunnel_solutions):
         np.testing.assert_allclose(u_sp[:, cols], u_ref[:, cols], rtol=0, atol=1e-10 * scale)
 
 
-@pytest.mark.parametrize("symmetric", [True, False])
-def test_sparse_solve_of_one_iteration_matches_dense_lu(symmetric):
+@pytest.mark.parametrize("path", ["cholesky", "gmres", "klu fallback"])
+def test_sparse_solve_of_one_iteration_matches_dense_lu(path, monkeypatch):
     """One Newton matrix of the tunnel's first sub-step, solved by the sparse path and by
-    the dense LU: 1e-10. Symmetric (CHOLMOD), and made unsymmetric by perturbing the
-    right rows of its terms (KLU), as the slip coupling makes it."""
+    the dense LU: 1e-10. Symmetric (CHOLMOD); with a slip coupling on a third of the
+    touching slots (GMRES preconditioned by CHOLMOD's factor of the symmetric part),
+    and the same where GMRES may take a single iteration, so that KLU answers. Where
+    GMRES has its full space it answers itself (the KLU fallback made NaN here)."""
+    from jaxdem.core import _linsolve
     from jaxdem.core._linsolve import _solve_sparse
 
     # No bolt: a scene with bolts takes KLU whatever the symmetry (jaxdem.core._linsolve).
@@ -81,13 +84,23 @@ def test_sparse_solve_of_one_iteration_matches_dense_lu(symmetric):
     mdl, sub, st0, _, _ = prepare_substep(model, state, loads)
     ev = evaluate(mdl, sub, jnp.zeros_like(loads.force), jnp.zeros_like(st0, bool), st0,
                   st0, 0.0)
-    a, b, B, k = stiffness_terms(mdl, sub, ev, False)
-    noise = np.random.default_rng(0).uniform(-0.1, 0.1, B.shape)
-    Rt = B if symmetric else B * (1.0 + jnp.asarray(noise))
+    terms = stiffness_terms(mdl, sub, ev, False)
+    coupling = None
+    if path != "cholesky":
+        # -tan(phi) kn Bs Bn^T, as a slipping slot couples its shear to its normal force.
+        third = sub.geo["active"] & (jnp.arange(st0.shape[0]) % 3 == 0)
+        assert int(third.sum()) > 10
+        coupling = (sub.geo["a"], sub.geo["b"], sub.Bs, sub.Bn,
+                    jnp.where(third, -0.6 * sub.prop["kn"], 0.0))
+    if path == "klu fallback":
+        monkeypatch.setattr(_linsolve, "GMRES_MAX", 1)
+    if path == "gmres":  # GMRES's own answer: the fallback would give NaN
+        sparsax = _linsolve._sparsax()
+        monkeypatch.setattr(sparsax, "lu_solve", lambda Ai, Aj, Ax, b: b * jnp.nan)
     R = jnp.where(sub.free[:, None], 1.0, 0.0) * jnp.ones((mdl.n_blocks, mdl.ndof))
-    x_dense = solve_dense(mdl, sub, (a, b, B, Rt, k), R)
-    x_sparse = jax.jit(lambda r: _solve_sparse(mdl, sub, (a, b, B, Rt, k), r,
-                                               symmetric=jnp.asarray(symmetric)))(R)
+    x_dense = solve_dense(mdl, sub, _linsolve._unsymmetric(sub, terms, coupling), R)
+    x_sparse = jax.jit(lambda r: _solve_sparse(
+        mdl, sub, terms, r, symmetric=jnp.asarray(coupling is None), coupling=coupling))(R)
     scale = np.abs(np.asarray(x_dense)).max()
     assert scale > 0
     np.testing.assert_allclose(np.asarray(x_sparse), np.asarray(x_dense), rtol=0,

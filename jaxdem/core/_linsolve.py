@@ -19,27 +19,37 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdem.core._springs import Sub, n_bolt_terms
+from jaxdem.core._springs import Sub, n_bolt_terms, with_coupling
 from jaxdem.core.kinematics import gather_pairs, scatter_pairs
 from jaxdem.core.state import Model
 
 
-def linear_solve(model: Model, sub: Sub, terms, R, rtol=None, active=True, symmetric=True):
+def linear_solve(model: Model, sub: Sub, terms, R, rtol=None, active=True, symmetric=True,
+                 coupling=None):
     """(K_t + eps M)^-1 R (N, D) by the model's linear solver (``model.linear_solver``).
 
-    ``terms`` holds the rank-one terms of K_t: (a, b, B, k) for "cg", which
-    takes a symmetric matrix (:func:`jaxdem.core._springs.stiffness_terms`), and
-    (a, b, L, Rt, k) for the direct paths, unsymmetric where the slip coupling
-    is on (:func:`jaxdem.core._springs.with_slip_coupling`). ``rtol`` is the
-    relative residual at which CG stops (:func:`solve_cg`); ``active`` and
-    ``symmetric`` (traced bools) are for the sparse path (:func:`_solve_sparse`).
-    The choice is static: only the chosen path is traced.
+    ``terms`` (a, b, B, k) are the symmetric rank-one terms of K_t
+    (:func:`jaxdem.core._springs.stiffness_terms`); ``coupling`` (a, b, L, Rt, k),
+    the slip coupling (:func:`jaxdem.core._springs.slip_coupling`), makes it
+    unsymmetric on the direct paths ("cg" takes the symmetric part alone). ``rtol``
+    is the relative residual at which CG stops (:func:`solve_cg`); ``active`` and
+    ``symmetric`` (traced bools: False where the coupling is on) are for the sparse
+    path (:func:`_solve_sparse`). The choice is static: only the chosen path is
+    traced.
     """
     if model.linear_solver == "cg":
         return solve_cg(model, sub, terms, R, rtol)
     if model.linear_solver == "sparse":
-        return _solve_sparse(model, sub, terms, R, active, symmetric)
-    return solve_dense(model, sub, terms, R)
+        return _solve_sparse(model, sub, terms, R, active, symmetric, coupling)
+    return solve_dense(model, sub, _unsymmetric(sub, terms, coupling), R)
+
+
+def _unsymmetric(sub: Sub, terms, coupling):
+    """The symmetric terms (a, b, B, k) with the coupling group, if any, as (a, b, L, Rt, k)."""
+    if coupling is None:
+        a, b, B, k = terms
+        return a, b, B, B, k
+    return with_coupling(terms, coupling, sub.geo["a"].shape[0])
 
 
 def stiffness_blocks(model: Model, sub: Sub, a, b, L, Rt, k, diag):
@@ -47,7 +57,10 @@ def stiffness_blocks(model: Model, sub: Sub, a, b, L, Rt, k, diag):
 
     Block (rows[i], cols[i]) of the (N, N) block matrix gets ``blocks[i]``
     (summed where several land on one: :func:`assemble_dense` scatters them,
-    :func:`host_matrix` hands them to SciPy). L and Rt (M, 2 D) are the left
+    :func:`host_matrix` hands them to SciPy). The blocks are laid out as the
+    (M', ...) off-diagonal blocks (first, second) of the pairs and bolts, then
+    their (second, first), then the N diagonal blocks, each summed over every
+    pair and bolt of its block (the last N). L and Rt (M, 2 D) are the left
     and right rows of each term over the DOFs of its blocks (a, b); L = Rt for
     the symmetric iteration matrix. The terms start with whole groups of
     spring slots (P pairs x 2 sides x V vertices, in the order of
@@ -100,15 +113,20 @@ def stiffness_blocks(model: Model, sub: Sub, a, b, L, Rt, k, diag):
     Kp = jnp.concatenate([Kp, k[:, None, None] * L[:, :, None] * Rt[:, None, :]])
     first, second = jnp.concatenate([first, a]), jnp.concatenate([second, b])
     Kp = Kp.reshape(-1, 2, D, 2, D)
-    rows = jnp.concatenate([first, first, second, second])
-    cols = jnp.concatenate([first, second, first, second])
-    blocks = jnp.concatenate([Kp[:, 0, :, 0], Kp[:, 0, :, 1], Kp[:, 1, :, 0], Kp[:, 1, :, 1]])
-    own = jnp.arange(N)
-    diag_blocks = diag.reshape(N, D)[:, :, None] * jnp.eye(D, dtype=diag.dtype)
+    # Each block's own (diagonal) block, summed here over its pairs and bolts (a segment
+    # sum, 0.2 ms on seed example 2), so that the sparse solver gets one triplet per
+    # entry there rather than one per pair: it sorts its triplets for every new pattern,
+    # and on seed example 2 that sort of 1.8 million triplets cost 115 ms (CHOLMOD) and
+    # 190 ms (KLU) a sub-step, more than the factorisation.
+    own = jax.ops.segment_sum(jnp.concatenate([Kp[:, 0, :, 0], Kp[:, 1, :, 1]]),
+                              jnp.concatenate([first, second]), N)
+    own = own + (diag.reshape(N, D)[:, :, None] * jnp.eye(D, dtype=diag.dtype)).astype(own.dtype)
     if sub.Kc is not None:
-        diag_blocks = diag_blocks + sub.Kc
-    rows, cols = jnp.concatenate([rows, own]), jnp.concatenate([cols, own])
-    return rows, cols, jnp.concatenate([blocks, diag_blocks.astype(blocks.dtype)])
+        own = own + sub.Kc.astype(own.dtype)
+    blocks = jnp.concatenate([Kp[:, 0, :, 1], Kp[:, 1, :, 0], own])
+    rows = jnp.concatenate([first, second, jnp.arange(N)])
+    cols = jnp.concatenate([second, first, jnp.arange(N)])
+    return rows, cols, blocks
 
 
 def assemble_dense(model: Model, sub: Sub, a, b, L, Rt, k, diag):
@@ -194,15 +212,17 @@ def _sparsax():
     return sparsax
 
 
-def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True):
+def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True, coupling=None):
     """(K_t + eps M)^-1 R by a sparse direct solve inside the compiled program.
 
     SuiteSparse through sparsax's XLA FFI calls, so that the program is one XLA
     executable (stored and loaded like any other, a vmapped batch solved in one native
     call): CHOLMOD (supernodal Cholesky) where the iteration matrix is symmetric
-    positive definite beyond rounding, KLU (LU) elsewhere: the slip coupling
-    (``symmetric`` False), a scene with bolts (their geometric stiffness), float32, a
-    batch (where a choice would run both). On the 60 x 60 and 100 x 100 block
+    positive definite beyond rounding; for the slip tangent (``symmetric`` False, the
+    symmetric ``terms`` plus the ``coupling``) GMRES preconditioned by CHOLMOD's factor
+    of its symmetric part (:func:`_slip_gmres`), KLU (LU) of the whole where that does
+    not converge; KLU alone for a scene with bolts (their geometric stiffness), float32,
+    a batch (where a choice would run both). On the 60 x 60 and 100 x 100 block
     grids of BENCHMARKS.md ("Sparse solve inside XLA") CHOLMOD factorised twice as
     fast as SciPy's SuperLU and KLU two to three times slower. Fill-in of a 2D contact
     graph is mild, so cost and memory grow about linearly with the number of blocks,
@@ -212,37 +232,154 @@ def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True)
     the blocks of unused pairs zero); float32 scenes are solved in float64.
     Without sparsax, SciPy's SuperLU on the host (:func:`_host_sparse_solve`).
     """
-    a, b, L, Rt, k = terms
     diag = jnp.where(jnp.repeat(sub.free, model.ndof), model.pseudo_mass.reshape(-1), 1.0)
-    rows, cols, blocks = stiffness_blocks(model, sub, a, b, L, Rt, k, diag)
     rhs = R.reshape(-1)
     sparsax = _sparsax()
+
+    def whole():  # the blocks of K, coupling included
+        return stiffness_blocks(model, sub, *_unsymmetric(sub, terms, coupling), diag)
+
     if sparsax is None:
+        rows, cols, blocks = whole()
         x = jax.pure_callback(_host_sparse_solve, jax.ShapeDtypeStruct(rhs.shape, rhs.dtype),
                               rows, cols, blocks, rhs, jnp.asarray(active),
                               jnp.asarray(symmetric), vmap_method="sequential")
         return x.reshape(R.shape)
-    Ai, Aj, Ax = coo_of_blocks(model, rows, cols, blocks)
     b64 = rhs.astype(jnp.float64)
-
-    def lu():
-        return sparsax.lu_solve(Ai, Aj, Ax, b64)
-
     # CHOLMOD stops the whole program where its matrix is not positive definite, so it
     # only gets what is positive definite beyond rounding: a float64 matrix (eps M, a
     # millionth of the stiffness, is far above its rounding; float32 rounding broke
     # seed example 2's) of springs and cells alone (a bolt's geometric stiffness F H
     # can be indefinite in rotation), in a single solve (under vmap a cond runs both).
     if model.lanes is not None or model.n_bolts or R.dtype != jnp.float64:
-        x = lu()
+        x = sparsax.lu_solve(*coo_of_blocks(model, *whole()), b64)
+        return x.astype(R.dtype).reshape(R.shape)
+    a, b, B, k = terms
+    sym = stiffness_blocks(model, sub, a, b, B, B, k, diag)
+
+    def cholesky():
+        return sparsax.solve(*coo_of_blocks(model, *sym, upper=True), b64)
+
+    if coupling is None:
+        x = cholesky()
     else:
-        x = jax.lax.cond(jnp.asarray(symmetric), lambda: sparsax.solve(Ai, Aj, Ax, b64), lu)
+        def lu():
+            return sparsax.lu_solve(*coo_of_blocks(model, *whole()), b64)
+
+        x = jax.lax.cond(jnp.asarray(symmetric), cholesky,
+                         lambda: _slip_gmres(model, sparsax, sym, coupling, b64, lu))
     return x.astype(R.dtype).reshape(R.shape)
 
 
-def coo_of_blocks(model: Model, rows, cols, blocks):
+#: The slip tangent's GMRES (:func:`_slip_gmres`): at most this many iterations (the
+#: Krylov space's dimension, no restart), and the relative residual it stops at.
+GMRES_MAX = 40
+GMRES_RTOL = 1e-11
+
+
+def _slip_gmres(model: Model, sparsax, sym, coupling, b, fallback):
+    """K^-1 b for the slip tangent K = K_s + C by GMRES preconditioned with K_s's Cholesky factor.
+
+    K_s (``sym``: the blocks of :func:`stiffness_blocks`) is the tangent without the
+    slip coupling, symmetric positive definite; C (``coupling``, rank-one terms (a, b,
+    L, Rt, k): -(d fs / d fn) kn Bs Bn^T of each slipping slot,
+    :func:`jaxdem.core._springs.slip_coupling`) has rank at most the number of
+    slipping slots, so K K_s^-1 = I + C K_s^-1 is the identity but for a low-rank part
+    and GMRES ends in a few iterations (at most that rank + 1 in exact arithmetic;
+    about 5 on seed example 2). CHOLMOD's factor of K_s (its pattern's analysis
+    shared with the sub-step's secant iterations) and its triangular solves cost a
+    fraction of KLU's factorisation of K: on seed example 2, 31 ms a factor and 2 a
+    solve, against 95-140 ms an LU. Where GMRES does not reach :data:`GMRES_RTOL` in
+    :data:`GMRES_MAX` iterations (checked on the true residual), ``fallback`` (KLU on
+    K) answers instead.
+    """
+    rows, cols, blocks = sym
+    N, D = model.n_blocks, model.ndof
+    token = sparsax.factor(*coo_of_blocks(model, rows, cols, blocks, upper=True), b.shape[0])
+    ca, cb, cL, cR, ck = coupling
+
+    def matvec(x):
+        xb = x.reshape(N, D)
+        y = jax.ops.segment_sum(jnp.einsum("kij,kj->ki", blocks, xb[cols]), rows, N)
+        coupled = ck * jnp.sum(cR * gather_pairs(xb, ca, cb), axis=1)
+        return (y + scatter_pairs(N, ca, cb, coupled[:, None] * cL)).reshape(-1)
+
+    x, _ = _gmres(matvec, lambda r: sparsax.solve_factor(token, r), b, GMRES_RTOL, GMRES_MAX)
+    ok = jnp.linalg.norm(b - matvec(x)) <= 10 * GMRES_RTOL * jnp.linalg.norm(b)
+    return jax.lax.cond(ok, lambda: x, fallback)
+
+
+def _gmres(matvec, precond, b, rtol, m):
+    """Right-preconditioned GMRES from x = 0: x = M y, (A M) y = b, until the residual's
+    estimate is under rtol |b| or m iterations (no restart).
+
+    Arnoldi with classical Gram-Schmidt twice (CGS2: as stable as modified
+    Gram-Schmidt, and two matrix products instead of a loop), Givens rotations for the
+    least-squares residual. Returns (x, the residual's estimate relative to |b|).
+    Fixed shapes: the Krylov basis is an (m + 1, n) buffer.
+    """
+    n = b.shape[0]
+    beta = jnp.linalg.norm(b)
+    safe_beta = jnp.where(beta > 0, beta, 1.0)
+    V = jnp.zeros((m + 1, n), b.dtype).at[0].set(b / safe_beta)
+    H = jnp.eye(m + 1, m, dtype=b.dtype)  # unused columns stay regular
+    g = jnp.zeros(m + 1, b.dtype).at[0].set(beta)
+    rot = jnp.zeros((m, 2), b.dtype)
+    upto = jnp.arange(m + 1)
+
+    def cond(c):
+        j, _, _, g, _ = c
+        return (j < m) & (jnp.abs(g[j]) > rtol * beta)
+
+    def body(c):
+        j, V, H, g, rot = c
+        w = matvec(precond(V[j]))
+        h = jnp.zeros(m + 1, b.dtype)
+        for _ in range(2):  # CGS2
+            hh = jnp.where(upto <= j, V @ w, 0.0)
+            w = w - hh @ V
+            h = h + hh
+        hn = jnp.linalg.norm(w)
+        V = V.at[j + 1].set(w / jnp.where(hn > 0, hn, 1.0))
+        h = h.at[j + 1].set(hn)
+
+        def rotate(i, h):
+            cs, sn = rot[i]
+            hi, hi1 = h[i], h[i + 1]
+            return h.at[i].set(cs * hi + sn * hi1).at[i + 1].set(-sn * hi + cs * hi1)
+
+        h = jax.lax.fori_loop(0, j, rotate, h)
+        r = jnp.hypot(h[j], h[j + 1])
+        r_safe = jnp.where(r > 0, r, 1.0)
+        cs, sn = jnp.where(r > 0, h[j] / r_safe, 1.0), jnp.where(r > 0, h[j + 1] / r_safe, 0.0)
+        h = h.at[j].set(r).at[j + 1].set(0.0)
+        rot = rot.at[j].set(jnp.stack([cs, sn]))
+        g = g.at[j + 1].set(-sn * g[j]).at[j].set(cs * g[j])
+        return j + 1, V, H.at[:, j].set(h), g, rot
+
+    j, V, H, g, _ = jax.lax.while_loop(cond, body, (0, V, H, g, rot))
+    y = jax.scipy.linalg.solve_triangular(H[:m, :m], jnp.where(upto[:m] < j, g[:m], 0.0))
+    x = precond(y @ V[:m])
+    return x, jnp.abs(g[j]) / safe_beta
+
+
+def coo_of_blocks(model: Model, rows, cols, blocks, upper=False):
     """COO triplets (int32 rows, int32 columns, float64 values) of the (D, D) blocks of
-    :func:`stiffness_blocks`, as sparsax takes them (duplicates are summed there)."""
+    :func:`stiffness_blocks`, as sparsax takes them (duplicates are summed there).
+
+    ``upper``: of a symmetric matrix, only the off-diagonal blocks above the diagonal
+    (of each pair, (first, second) or (second, first)) with the diagonal blocks, half
+    the triplets: CHOLMOD reads the upper triangle alone.
+    """
+    if upper:
+        M = (rows.shape[0] - model.n_blocks) // 2
+        below = rows[:M] > cols[:M]
+
+        def pick(x):
+            take = below.reshape((M,) + (1,) * (x.ndim - 1))
+            return jnp.concatenate([jnp.where(take, x[M:2 * M], x[:M]), x[2 * M:]])
+
+        rows, cols, blocks = pick(rows), pick(cols), pick(blocks)
     D = model.ndof
     shape = blocks.shape
     Ai = jnp.broadcast_to(D * rows[:, None, None] + jnp.arange(D)[:, None], shape)

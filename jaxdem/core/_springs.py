@@ -292,26 +292,35 @@ def n_bolt_terms(model: Model) -> int:
     return model.n_bolts * 2 * model.ndof
 
 
-def with_slip_coupling(model: Model, sub: Sub, ev, terms, on):
-    """``terms`` (a, b, B, k) with the slip law's coupling added where ``on``: (a, b, L, Rt, k).
+def slip_coupling(sub: Sub, ev, on):
+    """The slip law's coupling where ``on``, as rank-one terms (a, b, L, Rt, k) = (a, b,
+    Bs, Bn, kc): one a slot, zero but where it is closed and slipping.
 
     A slipping slot's shear force follows its normal force, d fs / d fn_trial =
     sign(fs) tan(phi) (:func:`jaxdem.core.laws.forces_in_state`), so the exact
     tangent has the unsymmetric terms -(d fs / d fn_trial) kn Bs Bn^T. With
     them Newton converges quadratically once the states hold, where the slip
-    tangent's symmetric part converges linearly (about 0.7 an iteration). The
-    group goes after the slots' two and before the bolts, as
-    :func:`jaxdem.core._linsolve.assemble_dense` expects.
+    tangent's symmetric part converges linearly (about 0.7 an iteration).
     """
-    a, b, B, k = terms
-    S = sub.geo["a"].shape[0]
     law = lambda fn_t: forces_in_state(fn_t, ev["fs_trial"], sub.prop, sub.failed,  # noqa: E731
                                        ev["state"])[1]
     _, sn = jax.jvp(law, (ev["fn_trial"],), (jnp.ones_like(ev["fn_trial"]),))
     closed = sub.geo["active"] & (ev["state"] != OPEN)
     kc = jnp.where(on & closed, -sn * sub.prop["kn"], 0.0)
-    ga, gb = sub.geo["a"], sub.geo["b"]
+    return sub.geo["a"], sub.geo["b"], sub.Bs, sub.Bn, kc
+
+
+def with_coupling(terms, coupling, S: int):
+    """Symmetric terms (a, b, B, k) and a :func:`slip_coupling` group as one list (a, b,
+    L, Rt, k): the coupling after the slots' two groups (2 S terms) and before the
+    bolts, as :func:`jaxdem.core._linsolve.assemble_dense` expects."""
+    a, b, B, k = terms
     cat = jnp.concatenate
-    return (cat([a[:2 * S], ga, a[2 * S:]]), cat([b[:2 * S], gb, b[2 * S:]]),
-            cat([B[:2 * S], sub.Bs, B[2 * S:]]), cat([B[:2 * S], sub.Bn, B[2 * S:]]),
-            cat([k[:2 * S], kc, k[2 * S:]]))
+    return tuple(cat([x[:2 * S], c, x[2 * S:]])
+                 for x, c in zip((a, b, B, B, k), coupling, strict=True))
+
+
+def with_slip_coupling(model: Model, sub: Sub, ev, terms, on):
+    """``terms`` (a, b, B, k) with the slip law's coupling added where ``on``: (a, b, L, Rt, k)
+    (:func:`slip_coupling`, :func:`with_coupling`)."""
+    return with_coupling(terms, slip_coupling(sub, ev, on), sub.geo["a"].shape[0])

@@ -56,8 +56,8 @@ from jaxdem.core._springs import (
     bolt_rest_length,
     cell_stiffness,
     evaluate,
+    slip_coupling,
     stiffness_terms,
-    with_slip_coupling,
 )
 from jaxdem.core.kinematics import (
     b_rows,
@@ -161,7 +161,7 @@ def _newton(model: Model, sub: Sub, st0):
     """Newton iteration on du at fixed geometry (one sub-step).
 
     The elastic (secant) matrix first; the slip tangent (with the slip coupling on
-    the direct paths: :func:`jaxdem.core._springs.with_slip_coupling`) once the
+    the direct paths: :func:`jaxdem.core._springs.slip_coupling`) once the
     secant has reduced the residual twice with the states held and slots slip,
     kept while it reduces the residual; on the direct paths a backtracking line
     search on the merit sum((|R_b| / tol_b)^2) over the free blocks takes the first
@@ -290,11 +290,10 @@ def _newton(model: Model, sub: Sub, st0):
                 eta = jnp.clip(jnp.maximum(0.9 * ratio**2, need),
                                CG_RTOL_MIN[tol.dtype == jnp.float64], CG_RTOL_MAX)
                 return linear_solve(model, sub, terms, ev["R"], rtol=eta)
-            terms = with_slip_coupling(model, sub, ev, terms, tangent)
             # The secant matrix is symmetric positive definite (CHOLMOD on the
-            # sparse path), the slip tangent with its coupling is not (KLU).
+            # sparse path), the slip tangent with its coupling is not.
             return linear_solve(model, sub, terms, ev["R"], active=~c.done & ~converged,
-                                symmetric=~tangent)
+                                symmetric=~tangent, coupling=slip_coupling(sub, ev, tangent))
 
         # The iterate that converged takes no step: its matrix is not
         # assembled nor factorised (one factorisation a sub-step). Under vmap
