@@ -256,18 +256,24 @@ def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True,
         return x.astype(R.dtype).reshape(R.shape)
     a, b, B, k = terms
     sym = stiffness_blocks(model, sub, a, b, B, B, k, diag)
+    upper = coo_of_blocks(model, *sym, upper=True)
 
     def cholesky():
-        return sparsax.solve(*coo_of_blocks(model, *sym, upper=True), b64)
+        return sparsax.solve(*upper, b64)
 
     if coupling is None:
         x = cholesky()
     else:
-        def lu():
-            return sparsax.lu_solve(*coo_of_blocks(model, *whole()), b64)
+        def slip():
+            # K's triplets for the fallback are formed here, outside _slip_gmres's cond:
+            # formed inside its untaken branch, JAX 0.10 lowered the program with
+            # sparsax's factor call untyped, which XLA then refused (seen where the
+            # scene's arrays are constants of an outer jit).
+            whole_coo = coo_of_blocks(model, *whole())
+            return _slip_gmres(model, sparsax, sym, upper, coupling, b64,
+                               lambda: sparsax.lu_solve(*whole_coo, b64))
 
-        x = jax.lax.cond(jnp.asarray(symmetric), cholesky,
-                         lambda: _slip_gmres(model, sparsax, sym, coupling, b64, lu))
+        x = jax.lax.cond(jnp.asarray(symmetric), cholesky, slip)
     return x.astype(R.dtype).reshape(R.shape)
 
 
@@ -277,10 +283,11 @@ GMRES_MAX = 40
 GMRES_RTOL = 1e-11
 
 
-def _slip_gmres(model: Model, sparsax, sym, coupling, b, fallback):
+def _slip_gmres(model: Model, sparsax, sym, upper, coupling, b, fallback):
     """K^-1 b for the slip tangent K = K_s + C by GMRES preconditioned with K_s's Cholesky factor.
 
-    K_s (``sym``: the blocks of :func:`stiffness_blocks`) is the tangent without the
+    K_s (``sym``: the blocks of :func:`stiffness_blocks`; ``upper``: its upper triangle
+    as COO triplets, :func:`coo_of_blocks`) is the tangent without the
     slip coupling, symmetric positive definite; C (``coupling``, rank-one terms (a, b,
     L, Rt, k): -(d fs / d fn) kn Bs Bn^T of each slipping slot,
     :func:`jaxdem.core._springs.slip_coupling`) has rank at most the number of
@@ -295,7 +302,7 @@ def _slip_gmres(model: Model, sparsax, sym, coupling, b, fallback):
     """
     rows, cols, blocks = sym
     N, D = model.n_blocks, model.ndof
-    token = sparsax.factor(*coo_of_blocks(model, rows, cols, blocks, upper=True), b.shape[0])
+    token = sparsax.factor(*upper, b.shape[0])
     ca, cb, cL, cR, ck = coupling
 
     def matvec(x):
