@@ -22,7 +22,7 @@ import jax.numpy as jnp
 
 from jaxdem.core.kinematics import bolt_length_after, gather_pairs, scatter_pairs
 from jaxdem.core.laws import forces_in_state, mohr_coulomb
-from jaxdem.core.state import OPEN, SLIP, Model
+from jaxdem.core.state import OPEN, SLIP, STICK, Model
 
 #: A slipping spring whose strength is below this fraction of its trial shear force has
 #: no shear spring in the secant matrix (:func:`stiffness_terms`).
@@ -146,17 +146,14 @@ def evaluate(model: Model, sub: Sub, du, frozen, frozen_state, prev, band):
     fn = jnp.where(frozen, fn_f, fn_l)
     fs = jnp.where(frozen, fs_f, fs_l)
     st = jnp.where(frozen, frozen_state, st_l)
-    # The shear force's derivatives in the states held (the exact tangent's: a slot
-    # frozen in STICK beyond its strength carries the limit, d fs / d fs_trial = 0,
-    # as a slipping one does; with its elastic shear spring in the tangent, seed
-    # example 4's tried tangent steps raised the residual threefold with every state
-    # held). forces_in_state gives the law's forces in the law's own states.
-    def shear(fn_t, fs_t):
-        return forces_in_state(fn_t, fs_t, sub.prop, sub.failed, st, band)[1]
+    # d fs / d fn_trial in the states held, with the same band as the forces
+    # (forces_in_state gives the law's forces in the law's own states): the slip
+    # coupling's (:func:`slip_coupling`). Taken without the band, a slot stuck within
+    # the band above its strength got a coupling though its force is its trial force.
+    def shear(fn_t):
+        return forces_in_state(fn_t, fs_trial, sub.prop, sub.failed, st, band)[1]
 
-    ones = jnp.ones_like(fn_trial)
-    dfs_dfn = jax.jvp(lambda x: shear(x, fs_trial), (fn_trial,), (ones,))[1]
-    dfs_dfs = jax.jvp(lambda x: shear(fn_trial, x), (fs_trial,), (ones,))[1]
+    dfs_dfn = jax.jvp(shear, (fn_trial,), (jnp.ones_like(fn_trial),))[1]
     # Water presses on a joint's faces whether it is closed or open (within
     # the contact margin, where the slot is active): the springs carry only
     # the effective force. Tying pw to the closed state would make the force
@@ -171,7 +168,7 @@ def evaluate(model: Model, sub: Sub, du, frozen, frozen_state, prev, band):
                            sub.Bn * d_n[:, None] - sub.Bs * d_s[:, None])
     out = dict(fn=fn, fs=fs, state=st, gap=gap, fn_trial=fn_trial, fs_trial=fs_trial,
                total_n=total_n, misfit=jnp.abs(d_n) + jnp.abs(d_s), law_state=st_l,
-               dfs_dfn=dfs_dfn, dfs_dfs=dfs_dfs)
+               dfs_dfn=dfs_dfn)
     if model.n_bolts:
         L, g, H = _bolt_kinematics(model, sub, du)
         bf, bst = _bolt_law(model, sub, L)
@@ -241,11 +238,10 @@ def stiffness_terms(model: Model, sub: Sub, ev, consistent, near=None):
     (secant) stiffness, which keeps every step of the order of the elastic
     compliance, unless its strength is under :data:`SLIP_SECANT` of its trial
     shear force (a joint at zero normal force: no shear spring). With
-    ``consistent``, slots whose shear force is capped lose their shear spring
-    (slipping ones, and ones held stuck beyond their strength: ``ev["dfs_dfs"]``
-    of :func:`evaluate`; and yielded bolts theirs): the tangent of the slip law
-    (its symmetric part; the direct solvers add the coupling d fs / d fn =
-    tan(phi) while it is tried, :func:`slip_coupling`; the cg path does without),
+    ``consistent``, slipping slots lose their shear spring (and yielded bolts
+    theirs): the tangent of the slip law (its symmetric part; the direct solvers
+    add the coupling d fs / d fn = tan(phi) while it is tried,
+    :func:`slip_coupling`; the cg path does without),
     tried once the states hold so that slip settles in a few iterations, and
     used once the elastic iteration stalls so that a sliding mechanism makes
     a finite move (bounded by the step length) instead of creeping at
@@ -255,8 +251,7 @@ def stiffness_terms(model: Model, sub: Sub, ev, consistent, near=None):
     st = ev["state"]
     closed = sub.geo["active"] & (st != OPEN)
     kn = jnp.where(closed if near is None else closed | near, sub.prop["kn"], 0.0)
-    ks = jnp.where(closed, sub.prop["ks"], 0.0)
-    ks = jnp.where(consistent, ks * ev["dfs_dfs"], ks)
+    ks = jnp.where(closed & ((st == STICK) | ~consistent), sub.prop["ks"], 0.0)
     # A slipping spring whose strength is under a hundredth of its trial shear
     # force (a joint at zero normal force) carries none of the shear that its
     # elastic spring would: it keeps no shear spring in the secant either.
