@@ -129,6 +129,15 @@ def stiffness_blocks(model: Model, sub: Sub, a, b, L, Rt, k, diag):
     return rows, cols, blocks
 
 
+def blocks_times(model: Model, rows, cols, blocks, x):
+    """The block matrix of :func:`stiffness_blocks` times x, (n,) or (n, p), n = D N: each
+    (D, D) block times its column block of x, summed into its row block."""
+    N, D = model.n_blocks, model.ndof
+    xb = x.reshape((N, D) + x.shape[1:])[cols]
+    return jax.ops.segment_sum(jnp.einsum("kij,kj...->ki...", blocks, xb), rows,
+                               N).reshape(x.shape)
+
+
 def assemble_dense(model: Model, sub: Sub, a, b, L, Rt, k, diag):
     """sum_m k_m L_m R_m^T + blockdiag(Kc) + diag(diag) as a dense (D N, D N) matrix.
 
@@ -300,18 +309,16 @@ def _slip_gmres(model: Model, sparsax, sym, upper, coupling, b, fallback):
     :data:`GMRES_MAX` iterations (checked on the true residual), ``fallback`` (KLU on
     K) answers instead.
     """
-    rows, cols, blocks = sym
     N, D = model.n_blocks, model.ndof
     token = sparsax.factor(*upper, b.shape[0])
     ca, cb, cL, cR, ck = coupling
 
     def matvec(x):
-        xb = x.reshape(N, D)
-        y = jax.ops.segment_sum(jnp.einsum("kij,kj->ki", blocks, xb[cols]), rows, N)
-        coupled = ck * jnp.sum(cR * gather_pairs(xb, ca, cb), axis=1)
-        return (y + scatter_pairs(N, ca, cb, coupled[:, None] * cL)).reshape(-1)
+        coupled = ck * jnp.sum(cR * gather_pairs(x.reshape(N, D), ca, cb), axis=1)
+        return (blocks_times(model, *sym, x)
+                + scatter_pairs(N, ca, cb, coupled[:, None] * cL).reshape(-1))
 
-    x, _ = _gmres(matvec, lambda r: sparsax.solve_factor(token, r), b, GMRES_RTOL, GMRES_MAX)
+    x = _gmres(matvec, lambda r: sparsax.solve_factor(token, r), b, GMRES_RTOL, GMRES_MAX)
     ok = jnp.linalg.norm(b - matvec(x)) <= 10 * GMRES_RTOL * jnp.linalg.norm(b)
     return jax.lax.cond(ok, lambda: x, fallback)
 
@@ -322,13 +329,10 @@ def _gmres(matvec, precond, b, rtol, m):
 
     Arnoldi with classical Gram-Schmidt twice (CGS2: as stable as modified
     Gram-Schmidt, and two matrix products instead of a loop), Givens rotations for the
-    least-squares residual. Returns (x, the residual's estimate relative to |b|).
-    Fixed shapes: the Krylov basis is an (m + 1, n) buffer.
+    least-squares residual. Fixed shapes: the Krylov basis is an (m + 1, n) buffer.
     """
-    n = b.shape[0]
     beta = jnp.linalg.norm(b)
-    safe_beta = jnp.where(beta > 0, beta, 1.0)
-    V = jnp.zeros((m + 1, n), b.dtype).at[0].set(b / safe_beta)
+    V = jnp.zeros((m + 1, b.shape[0]), b.dtype).at[0].set(b / jnp.where(beta > 0, beta, 1.0))
     H = jnp.eye(m + 1, m, dtype=b.dtype)  # unused columns stay regular
     g = jnp.zeros(m + 1, b.dtype).at[0].set(beta)
     rot = jnp.zeros((m, 2), b.dtype)
@@ -366,8 +370,7 @@ def _gmres(matvec, precond, b, rtol, m):
 
     j, V, H, g, _ = jax.lax.while_loop(cond, body, (0, V, H, g, rot))
     y = jax.scipy.linalg.solve_triangular(H[:m, :m], jnp.where(upto[:m] < j, g[:m], 0.0))
-    x = precond(y @ V[:m])
-    return x, jnp.abs(g[j]) / safe_beta
+    return precond(y @ V[:m])
 
 
 def coo_of_blocks(model: Model, rows, cols, blocks, upper=False):

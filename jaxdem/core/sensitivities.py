@@ -25,7 +25,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdem.core._contact import remap_history, slot_geometry
-from jaxdem.core._linsolve import assemble_dense, host_matrix, sparse_lu, stiffness_blocks
+from jaxdem.core._linsolve import (
+    assemble_dense,
+    blocks_times,
+    host_matrix,
+    sparse_lu,
+    stiffness_blocks,
+)
 from jaxdem.core._springs import Sub, evaluate, stiffness_terms, with_slip_coupling
 from jaxdem.core._substep import (
     block_fields_of,
@@ -129,14 +135,9 @@ def _tangent_solve(model: Model, sub: Sub, terms, rhs):
             x = jax.pure_callback(_host_tangent_solve, jax.ShapeDtypeStruct(B.shape, B.dtype),
                                   rows, cols, blocks, pm, B, vmap_method="sequential")
         else:
-            def K_times(x):
-                xb = x.reshape(N, D, p)[cols]
-                return jax.ops.segment_sum(jnp.einsum("kij,kjp->kip", blocks, xb), rows,
-                                           N).reshape(N * D, p)
-
             x = solve(B)
             for _ in range(TANGENT_REFINEMENTS):
-                x = x + solve(B - K_times(x))
+                x = x + solve(B - blocks_times(model, rows, cols, blocks, x))
             x = jnp.where(jnp.all(jnp.isfinite(x)), x, jnp.nan)
     return x.T.reshape(rhs.shape)
 
