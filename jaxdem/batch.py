@@ -508,7 +508,8 @@ class _BatchDriver:
                 break
             self.model = model_mod.grown(self.model,
                                          bool(np.asarray(info["cell_full"])[over].any()),
-                                         bool(np.asarray(info["slots_full"])[over].any()))
+                                         bool(np.asarray(info["slots_full"])[over].any()),
+                                         int(np.asarray(info["touch_needed"])[over].max()))
             need = int(np.asarray(info["pairs_needed"])[over].max())
             cap = self.state.capacity
             if need > cap:

@@ -574,7 +574,8 @@ def run_increment(model: Model, state: State, loads: Loads, tangents: dict | Non
         compile_s += dt
         if Status.of(info["status"]) != Status.CAPACITY_OVERFLOW:
             return model, new, info, compile_s
-        model = model_mod.grown(model, bool(info["cell_full"]), bool(info["slots_full"]))
+        model = model_mod.grown(model, bool(info["cell_full"]), bool(info["slots_full"]),
+                                int(info["touch_needed"]))
         need = int(info["pairs_needed"])
         if need > state.capacity:
             capacity = model_mod.bucket(max(2 * state.capacity, int(1.3 * need) + 16))

@@ -212,3 +212,46 @@ def test_gap_gradient_matches_finite_differences():
     fd = (total_gap(1e-6) - total_gap(-1e-6)) / 2e-6
     assert float(g) == pytest.approx(float(fd), rel=1e-6)
     assert float(g) == pytest.approx(2.0)
+
+
+def _triangles_under_octagons():
+    """Ten unit squares, each cut on its diagonal into two triangles, and three regular
+    octagons (flat side down) resting on them: most blocks have 3 vertices, V = 8."""
+    blocks = []
+    for i in range(10):
+        blocks += [[[i, 0], [i + 1, 0], [i + 1, 1]], [[i, 0], [i + 1, 1], [i, 1]]]
+    side = 1.0 / (1 + math.sqrt(2))
+    for cx in (1.5, 4.5, 7.5):
+        r = 0.5 / math.cos(math.pi / 8)
+        blocks.append([[cx + r * math.cos(math.pi / 8 * (2 * k - 5)),
+                        1.5 + r * math.sin(math.pi / 8 * (2 * k - 5))] for k in range(8)])
+    assert abs(blocks[-1][1][0] - blocks[-1][0][0] - side) < 1e-12
+    return blocks
+
+
+def test_narrow_phase_tests_most_pairs_with_their_own_vertex_count():
+    """Triangles under octagons (V = 8): the pairs of triangles are tested with their 3
+    vertices, those with an octagon with all 8 (``model.narrow_vertices``,
+    ``wide_capacity``: :func:`jaxdem.core.model._narrow_split`). The slots are those of
+    testing every pair with 8: the same touching slots, and their gaps, points, normals,
+    shares and centroid distances to 1e-12 (round-off of a different order of operations).
+    Too few places for the wide pairs are an overflow of the detection, not a truncation."""
+    model, state, _ = model_mod.build(_scene(_triangles_under_octagons()))
+    assert model.n_vertices == 8 and model.narrow_vertices == 3 and model.wide_capacity > 0
+    pairs, _, full = broad_phase(model, state.verts, state.capacity, state.alive)
+    assert not bool(full)
+    split = narrow_phase(model, state.verts, state.centroid, pairs)
+    whole = narrow_phase(dataclasses.replace(model, narrow_vertices=8), state.verts,
+                         state.centroid, pairs)
+    act = np.asarray(whole["active"])
+    np.testing.assert_array_equal(np.asarray(split["active"]), act)
+    # Each octagon bears on the two triangles under it, face to face, and they on it.
+    on_octagons = act & (np.asarray(whole["a"]) >= 20) | act & (np.asarray(whole["b"]) >= 20)
+    assert on_octagons.sum() >= 6
+    for k in ("gap", "point", "normal", "share", "h_a", "h_b", "far_gap"):
+        np.testing.assert_allclose(np.asarray(split[k])[act], np.asarray(whole[k])[act],
+                                   rtol=0, atol=1e-12, err_msg=k)
+    for k in ("edge", "own_edge", "joint", "halved", "a", "b"):
+        np.testing.assert_array_equal(np.asarray(split[k])[act], np.asarray(whole[k])[act])
+    tight = dataclasses.replace(model, wide_capacity=1)
+    assert bool(broad_phase(tight, state.verts, state.capacity, state.alive)[2])

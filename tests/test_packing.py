@@ -2,7 +2,8 @@
 
 Of the P x 2 x V slots of a sub-step's detection only the touching ones carry springs,
 and the geometry does not change during the sub-step's Newton iteration, so the iteration
-on those slots packed into ``slots_per_pair`` x P places is the iteration on all of them:
+on those slots packed into ``slots_per_pair`` x ``touch_capacity`` places (the touching
+pairs' slots) is the iteration on all of them:
 the same iterates, states and answer, to the round-off of a different order of summation.
 Where more slots touch than there are places, the increment ends with a capacity
 overflow and the driver doubles the places and redoes it: nothing is left out.
@@ -69,27 +70,52 @@ def test_more_touching_slots_than_places_grow_the_places_and_redo_the_increment(
                                atol=1e-9 * np.abs(np.asarray(full.state.u)).max())
 
 
+def test_more_touching_pairs_than_places_grow_them_and_redo_the_increment():
+    """With places for 8 touching pairs (``touch_capacity``) the tunnel has more: the
+    increment overflows, the driver grows the places, and the answer is that of all
+    slots, in the same iterations."""
+    scene = _tunnel("sparse")
+    model, state, layout = model_mod.build(scene)
+    tight = solver.run(scene, dataclasses.replace(model, touch_capacity=8), state, layout,
+                       solver.scene_data(scene, layout))
+    full = _solve(scene, 2 * tight.model.n_vertices)
+    assert tight.model.touch_capacity > 8
+    assert tight.status == full.status and tight.status.value == "converged"
+    assert [r["iterations"] for r in tight.records] == [r["iterations"] for r in full.records]
+    np.testing.assert_allclose(np.asarray(tight.state.u), np.asarray(full.state.u), rtol=0,
+                               atol=1e-9 * np.abs(np.asarray(full.state.u)).max())
+
+
 def test_each_pairs_places_hold_its_touching_slots_and_one_more_overflows():
-    """The assembly sums each pair's touching slots from ``pack_slots``'s grid: every
-    grid entry is a packed place of that pair, and together they are all its touching
-    slots. A pair with more touching slots than its places (m = 4 with two places per
-    candidate pair) flags the overflow that doubles the places, although the packed
-    list itself has room."""
+    """The assembly sums each touching pair's slots from ``pack_slots``'s grid: row q of
+    the grid is the q-th touching pair (in the detection's order), every entry of it a
+    packed place of that pair, and together they are all its touching slots; the rows
+    past the touching pairs are empty. A pair with more touching slots than its places
+    (m = 4 with two places per touching pair) flags the overflow that doubles the places,
+    although the packed list itself has room."""
     model, state, _ = model_mod.build(parse_scene(jointed_tunnel(water=False, bolts=False)))
     model = dataclasses.replace(model, slots_per_pair=2)
     loads = make_loads(model, model.f_ext)
     mdl, sub, st0, _, _ = prepare_substep(model, state, loads)
-    packed, _, sid, too_many = pack_slots(mdl, sub, st0)
+    packed, _, sid, too_many, touching = pack_slots(mdl, sub, st0)
     assert not bool(too_many)
     two_v = 2 * model.n_vertices
     active = np.asarray(sub.geo["active"])
+    pairs = np.flatnonzero(active.reshape(-1, two_v).any(axis=1))
+    assert int(touching) == len(pairs) > 0
     grid, sid = np.asarray(packed.packed["grid"]), np.asarray(sid)
-    assert grid.shape[1] == pair_places(model) == 4
-    for p in range(grid.shape[0]):
-        places = grid[p][grid[p] < sid.shape[0]]
+    assert grid.shape[1] == pair_places(model) == 4 and grid.shape[0] >= len(pairs)
+    first = np.asarray(packed.packed["first"])
+    for q in range(grid.shape[0]):
+        places = grid[q][grid[q] < sid.shape[0]]
+        if q >= len(pairs):
+            assert places.size == 0
+            continue
+        p = pairs[q]
+        assert first[q] == np.asarray(sub.geo["a"])[p * two_v]
         assert sorted(sid[places]) == list(np.flatnonzero(active[p * two_v:(p + 1) * two_v])
                                            + p * two_v)
-    # Five touching slots on one pair (the list has room: C = 2 P places).
+    # Five touching slots on one pair (the list has room).
     crowded = active.copy()
     crowded[:5] = True
     assert crowded.sum() <= 2 * grid.shape[0]

@@ -3,9 +3,10 @@
 Broad phase. Axis-aligned boxes grown by the detection margin. Blocks in
 ``model.big`` (walls, blocks much larger than the median) are tested against
 every block; the others go into a uniform grid of cells no smaller than the
-largest of them, sorted by cell key, and each block looks at its own and the
-eight neighbouring cells. Capacities (pairs, blocks per cell) are fixed; when
-one is exceeded the ``overflow`` flag is set and the host grows it and
+largest of them, sorted by cell key, and each block looks at the blocks of its own
+and the eight neighbouring cells, laid end to end for all blocks (a ragged list of
+``model.cell_capacity`` places per block on average). Capacities (pairs, neighbour
+places) are fixed; when one is exceeded a flag is set and the host grows it and
 recompiles (never silent truncation). Small scenes use all pairs.
 
 Narrow phase (vertex-to-edge, per pair (a, b), a < b). Each vertex of one
@@ -113,7 +114,9 @@ def broad_phase(model: Model, verts: jax.Array, capacity: int, alive: jax.Array)
     Returns:
       pairs: (capacity, 2) int32, empty entries (N, N), sorted by a * N + b.
       count: number of candidate pairs found (more than ``capacity``: overflow).
-      cell_full: a grid cell held more than ``model.cell_capacity`` blocks.
+      cell_full: the blocks had more neighbours in their cells than ``model.cell_capacity``
+        times N places, or there are more wide pairs than ``model.wide_capacity``
+        (:func:`narrow_phase`).
     """
     N = model.n_blocks
     box = bounding_boxes(verts, model.margin)
@@ -126,7 +129,7 @@ def broad_phase(model: Model, verts: jax.Array, capacity: int, alive: jax.Array)
         count = jnp.sum(ok)
         a, b = jnp.nonzero(ok, size=capacity, fill_value=N)
         pairs = jnp.stack([a, b], axis=-1).astype(jnp.int32)
-        return pairs, count, jnp.array(False)
+        return pairs, count, _wide_full(model, pairs)
 
     is_big = jnp.zeros(N, bool).at[model.big].set(True) if model.n_big else jnp.zeros(N, bool)
     # The small live blocks go in cells; dead blocks (excavated, or the padding of a
@@ -142,22 +145,30 @@ def broad_phase(model: Model, verts: jax.Array, capacity: int, alive: jax.Array)
     key = jnp.where(hashed, cxy[:, 0] * 2**16 + cxy[:, 1], -1)
     order = jnp.argsort(key)
     skey = key[order]
-    cap = model.cell_capacity
     offsets = jnp.array([(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1)], jnp.int32)
     nkey = (cxy[:, None, 0] + offsets[None, :, 0]) * 2**16 + (cxy[:, None, 1] + offsets[None, :, 1])
     start = jnp.searchsorted(skey, nkey, side="left")
     stop = jnp.searchsorted(skey, nkey, side="right")
-    cell_full = jnp.any(hashed[:, None] & (stop - start > cap))
-    slot = start[:, :, None] + jnp.arange(cap)[None, None, :]
-    inside = slot < stop[:, :, None]
-    j = order[jnp.clip(slot, 0, N - 1)].reshape(N, -1)
-    ok_cell = inside.reshape(N, -1) & (ids[:, None] < j) & ~is_big[:, None]
-    ok_cell = ok_cell & _boxes_overlap(box[:, None, :], box[j])
-    ok_cell = ok_cell & alive[:, None] & alive[j] & (movable[:, None] | movable[j])
-    a_cell = jnp.broadcast_to(ids[:, None], j.shape)
-    cand_a = [a_cell.reshape(-1)]
-    cand_b = [j.reshape(-1)]
-    cand_ok = [ok_cell.reshape(-1)]
+    # Each block's neighbours, cell by cell, laid end to end in ``room`` places (the
+    # blocks of its own and the eight cells around, a ragged list): not ``room`` per
+    # cell for every cell. Cells hold very different numbers of blocks where block sizes
+    # vary (a fine mesh round a tunnel in a coarse one), and padding every cell to the
+    # fullest one cost seed example 2 1.5 million places (30 ms a detection) for the
+    # 100,000 it has.
+    per_cell = jnp.where(hashed[:, None], stop - start, 0).reshape(-1)  # (9 N,)
+    room = N * model.cell_capacity
+    cell_full = jnp.sum(per_cell) > room
+    q = jnp.repeat(jnp.arange(9 * N), per_cell, total_repeat_length=room)
+    place = jnp.arange(room)
+    first = jnp.cumsum(per_cell) - per_cell
+    inside = place < jnp.sum(per_cell)
+    i = q // 9
+    j = order[jnp.clip(start.reshape(-1)[q] + place - first[q], 0, N - 1)]
+    ok_cell = inside & (i < j) & _boxes_overlap(box[i], box[j])
+    ok_cell = ok_cell & alive[i] & alive[j] & (movable[i] | movable[j])
+    cand_a = [i]
+    cand_b = [j]
+    cand_ok = [ok_cell]
     if model.n_big:
         g = model.big
         ok_big = _boxes_overlap(box[g][:, None, :], box[None, :, :])
@@ -182,7 +193,14 @@ def broad_phase(model: Model, verts: jax.Array, capacity: int, alive: jax.Array)
     k = a.astype(jnp.int64) * (N + 1) + b
     o = jnp.argsort(k)
     pairs = jnp.stack([a[o], b[o]], axis=-1).astype(jnp.int32)
-    return pairs, count, cell_full
+    return pairs, count, cell_full | _wide_full(model, pairs)
+
+
+def _wide_full(model: Model, pairs):
+    """More wide pairs (:func:`wide_pairs`) than the narrow phase has places for."""
+    if model.narrow_vertices >= model.n_vertices:
+        return jnp.array(False)
+    return jnp.sum(wide_pairs(model, pairs)) > model.wide_capacity
 
 
 def block_widths(e_all):
@@ -385,6 +403,59 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ex, ey, cy, width, not_dup):
                 watch=watch, node_gap=node_gap, node_normal=node_normal)
 
 
+def _pair_slots(model: Model, verts, nv, vmask, e_all, widths, centroid, pairs):
+    """:func:`narrow_phase`'s slots of each pair as (P, 2, V', ...) arrays, V' = verts.shape[1]
+    (``nv``, ``vmask`` and ``e_all``, the blocks' :func:`edges`, for these vertices;
+    ``widths`` from all of them)."""
+    N = model.n_blocks
+    P = pairs.shape[0]
+    V = verts.shape[1]
+    valid = pairs[:, 0] < N
+    a = jnp.clip(pairs[:, 0], 0, N - 1)
+    b = jnp.clip(pairs[:, 1], 0, N - 1)
+    va, vb = verts[a], verts[b]
+    nva, nvb = nv[a], nv[b]
+    vma = vmask[a] & valid[:, None]
+    vmb = vmask[b] & valid[:, None]
+    ea, eb = (tuple(x[a] for x in e_all), tuple(x[b] for x in e_all))
+    ca, cb = centroid[a], centroid[b]
+    every = jnp.ones((P, V), bool)
+    s0 = _vertex_edge(model, va, nva, vma, ca, ea, eb, cb, widths[b], every)
+    s1 = _vertex_edge(model, vb, nvb, vmb, cb, eb, ea, ca, widths[a], every)
+    # A vertex of b at a contact point of a vertex of a (within that point's
+    # overlap) is the same contact point, seen from both sides: each side's slot
+    # takes half of it. Keeping one side's only (the lower block index's) made
+    # the answer depend on how the blocks are numbered: at a junction of several
+    # blocks the two sides' points can bear on different faces, and a mirrored
+    # scene, numbered otherwise, got other springs (tests/test_metamorphic.py).
+    dv = vb[:, :, None, :] - va[:, None, :, :]  # (P, V of b, V of a)
+    reach = (1.5 * jnp.maximum(jnp.abs(s0["gap"])[:, None, :], jnp.abs(s1["gap"])[:, :, None])
+             + model.span_tol)
+    same = ((_dot(dv, dv) <= reach**2) & s0["active"][:, None, :]
+            & s1["active"][:, :, None])
+    s0["halved"] = jnp.any(same, axis=1)
+    s1["halved"] = jnp.any(same, axis=2)
+    return {k: jnp.stack([s0[k], s1[k]], axis=1) for k in s0}
+
+
+def wide_pairs(model: Model, pairs):
+    """(P,) the pairs that :func:`narrow_phase` tests with all V vertices: one of their
+    blocks has more than ``model.narrow_vertices``."""
+    N = model.n_blocks
+    wide = model.nv > model.narrow_vertices
+    return (pairs[:, 0] < N) & (wide[jnp.clip(pairs[:, 0], 0, N - 1)]
+                                | wide[jnp.clip(pairs[:, 1], 0, N - 1)])
+
+
+def _pad_vertices(key, x, V):
+    """(P, 2, v, ...) slots padded to V vertices with copies of vertex 0's, inactive (the
+    values a padded vertex, a copy of the first, has; active, watch and halved False)."""
+    pad = jnp.broadcast_to(x[:, :, :1], x.shape[:2] + (V - x.shape[2],) + x.shape[3:])
+    if key in ("active", "watch", "halved"):
+        pad = jnp.zeros_like(pad)
+    return jnp.concatenate([x, pad], axis=2)
+
+
 def narrow_phase(model: Model, verts, centroid, pairs):
     """Spring slots of every candidate pair, flattened to S = P * 2 * V.
 
@@ -406,36 +477,31 @@ def narrow_phase(model: Model, verts, centroid, pairs):
     N = model.n_blocks
     P = pairs.shape[0]
     V = model.n_vertices
-    valid = pairs[:, 0] < N
-    a = jnp.clip(pairs[:, 0], 0, N - 1)
-    b = jnp.clip(pairs[:, 1], 0, N - 1)
-    va, vb = verts[a], verts[b]
-    nva, nvb = model.nv[a], model.nv[b]
-    vma = model.vmask[a] & valid[:, None]
-    vmb = model.vmask[b] & valid[:, None]
     # Each block's edges and width once, then per pair: not twice per pair (primal
     # and tangents).
     e_all = edges(verts, model.nv)
     widths = block_widths(e_all)
-    ea, eb = (tuple(x[a] for x in e_all), tuple(x[b] for x in e_all))
-    ca, cb = centroid[a], centroid[b]
-    every = jnp.ones((P, V), bool)
-    s0 = _vertex_edge(model, va, nva, vma, ca, ea, eb, cb, widths[b], every)
-    s1 = _vertex_edge(model, vb, nvb, vmb, cb, eb, ea, ca, widths[a], every)
-    # A vertex of b at a contact point of a vertex of a (within that point's
-    # overlap) is the same contact point, seen from both sides: each side's slot
-    # takes half of it. Keeping one side's only (the lower block index's) made
-    # the answer depend on how the blocks are numbered: at a junction of several
-    # blocks the two sides' points can bear on different faces, and a mirrored
-    # scene, numbered otherwise, got other springs (tests/test_metamorphic.py).
-    dv = vb[:, :, None, :] - va[:, None, :, :]  # (P, V of b, V of a)
-    reach = (1.5 * jnp.maximum(jnp.abs(s0["gap"])[:, None, :], jnp.abs(s1["gap"])[:, :, None])
-             + model.span_tol)
-    same = ((_dot(dv, dv) <= reach**2) & s0["active"][:, None, :]
-            & s1["active"][:, :, None])
-    s0["halved"] = jnp.any(same, axis=1)
-    s1["halved"] = jnp.any(same, axis=2)
-    out = {k: jnp.stack([s0[k], s1[k]], axis=1) for k in s0}
+    v = model.narrow_vertices
+    if v >= V:
+        out = _pair_slots(model, verts, model.nv, model.vmask, e_all, widths, centroid, pairs)
+    else:
+        # Most pairs with the first v vertices of their blocks (all they have), then the
+        # wide ones (a block with more: :func:`jaxdem.core.model._narrow_split`) again with
+        # all V, over the first's values (none where no block has more than v: V is a size
+        # class, and may be more than any block has). A block with more than v vertices is
+        # cut to its first v in the first pass (a convex polygon still, its values unused).
+        nv = jnp.minimum(model.nv, v)
+        out = _pair_slots(model, verts[:, :v], nv, model.vmask[:, :v], edges(verts[:, :v], nv),
+                          widths, centroid, pairs)
+        out = {k: _pad_vertices(k, x, V) for k, x in out.items()}
+        if model.wide_capacity:
+            at = jnp.nonzero(wide_pairs(model, pairs), size=model.wide_capacity,
+                             fill_value=P)[0]
+            wide = jnp.concatenate([pairs, jnp.full((1, 2), N, pairs.dtype)])[at]
+            w = _pair_slots(model, verts, model.nv, model.vmask, e_all, widths, centroid, wide)
+            out = {k: out[k].at[at].set(w[k], mode="drop") for k in out}
+    a = jnp.clip(pairs[:, 0], 0, N - 1)
+    b = jnp.clip(pairs[:, 1], 0, N - 1)
     A = jnp.stack([jnp.broadcast_to(a[:, None], (P, V)), jnp.broadcast_to(b[:, None], (P, V))], 1)
     B = jnp.stack([jnp.broadcast_to(b[:, None], (P, V)), jnp.broadcast_to(a[:, None], (P, V))], 1)
     # Joint of the slot: that of the contacted face, else of the own face, else the default.

@@ -628,32 +628,41 @@ def substep(model: Model, state: State, loads: Loads):
 
 
 def pack_slots(model: Model, sub: Sub, st0):
-    """The touching slots of ``sub`` packed into C = ``model.slots_per_pair`` x P places.
+    """The touching slots of ``sub`` packed into C = ``model.slots_per_pair`` x Pt places,
+    and their pairs into Pt = ``model.touch_capacity`` (at most the P candidate pairs).
 
     Of the S = P x 2 x V slots of the detection only the touching ones (``active``, within
     the contact margin) carry springs, and the geometry does not change during a
     sub-step's Newton iteration: it works on them alone (a tenth of S on the demo tunnel:
     4,478 of 36,864), which makes its evaluations and its assembly that much cheaper.
-    Empty places are inactive with zero rows. The packed list keeps the detection's
-    order, so each pair's slots lie side by side: ``grid`` (P, m) gives their places, m =
-    :func:`pair_places`, for the assembly's sum over a pair's springs
-    (:func:`jaxdem.core._linsolve.stiffness_blocks`). Returns (packed sub, its starting
-    states, the (C,) slot indices, S for an empty place; too many: more touching slots
-    than C, or a pair with more than m, so that the increment ends with a capacity
-    overflow and the driver doubles ``slots_per_pair``). Where C >= S, ``sub`` itself
-    and None.
+    Of the P candidate pairs, only those with a touching slot couple their blocks (seed
+    example 2: 2,858 of 8,678): the assembly sums those pairs' slots alone, into that many
+    blocks of the matrix. Empty places are inactive with zero rows. The packed list keeps
+    the detection's order, so each pair's slots lie side by side: ``grid`` (touch_capacity,
+    m) gives their places, m = :func:`pair_places`, for the assembly's sum over a pair's
+    springs (:func:`jaxdem.core._linsolve.stiffness_blocks`), ``first`` and ``second`` the
+    pair's blocks. Returns (packed sub, its starting states, the (C,) slot indices, S for
+    an empty place; too many: more touching slots than C, or a pair with more than m, so
+    that the increment ends with a capacity overflow and the driver doubles
+    ``slots_per_pair``; the number of touching pairs, which the driver compares with
+    ``touch_capacity``). Where C >= S, ``sub`` itself and None.
     """
     S = st0.shape[0]
-    P = S // (2 * model.n_vertices)
-    C = model.slots_per_pair * P
+    two_v = 2 * model.n_vertices
+    P = S // two_v
+    Pt = min(model.touch_capacity, P)
+    C = model.slots_per_pair * Pt
     if C >= S:
-        return sub, st0, None, jnp.array(False)
-    count = jnp.sum(sub.geo["active"])
-    sid = jnp.nonzero(sub.geo["active"], size=C, fill_value=S)[0]
-    # The pair of each place (P for an empty one: sorted), and each pair's run of places
-    # [start, end): pair p's run ends where pair p + 1's begins.
-    bounds = jnp.searchsorted(sid // (2 * model.n_vertices), jnp.arange(P + 1))
-    start, end = bounds[:-1], bounds[1:]
+        return sub, st0, None, jnp.array(False), jnp.array(0)
+    active = sub.geo["active"]
+    count = jnp.sum(active)
+    touching = jnp.any(active.reshape(P, two_v), axis=1)
+    pair = jnp.nonzero(touching, size=Pt, fill_value=P)[0]
+    sid = jnp.nonzero(active, size=C, fill_value=S)[0]
+    # Each touching pair's run of places [start, end) in the packed list.
+    owner = sid // two_v
+    start = jnp.searchsorted(owner, pair, side="left")
+    end = jnp.where(pair < P, jnp.searchsorted(owner, pair, side="right"), start)
     m = pair_places(model)
     grid = start[:, None] + jnp.arange(m)
     grid = jnp.where(grid < end[:, None], grid, C)
@@ -666,14 +675,15 @@ def pack_slots(model: Model, sub: Sub, st0):
 
     geo = {k: v[at] for k, v in sub.geo.items()}
     geo["active"] = geo["active"] & real
-    pairs = lambda x: x.reshape(P, -1)[:, 0]  # noqa: E731
+    of_pair = lambda x: x.reshape(P, -1)[jnp.minimum(pair, P - 1), 0]  # noqa: E731
     packed = Sub(geo=geo, prop={k: v[at] for k, v in sub.prop.items()}, Bn=take(sub.Bn),
                  Bs=take(sub.Bs), fs_old=take(sub.fs_old), fn0=take(sub.fn0),
                  failed=take(sub.failed), pw=take(sub.pw), bolt=sub.bolt, load=sub.load,
                  free=sub.free, stress=sub.stress, Kc=sub.Kc,
-                 packed=dict(slot=sid, first=pairs(sub.geo["a"]), second=pairs(sub.geo["b"]),
-                             grid=grid))
-    return packed, st0[at], sid, (count > C) | jnp.any(end - start > m)
+                 packed=dict(slot=sid, first=of_pair(sub.geo["a"]),
+                             second=of_pair(sub.geo["b"]), grid=grid))
+    too_many = (count > C) | jnp.any(end - start > m)
+    return packed, st0[at], sid, too_many, jnp.sum(touching)
 
 
 def pair_places(model: Model) -> int:
@@ -693,8 +703,10 @@ CORNER_FIELDS = ("watch", "node_gap", "node_normal")
 CORNER_PASS = 0.1
 
 
-def corner_bound(model: Model, sub: Sub, centroid, corners: dict, du):
-    """The largest scale s <= 1 of ``du`` at which no corner has passed into another block.
+def corner_bound(model: Model, sub: Sub, centroid, corners: dict, du, capacity: int):
+    """The largest scale s <= 1 of ``du`` at which no corner has passed into another block,
+    and whether more vertices were watched than ``capacity`` (the bound is over
+    ``capacity`` of them at most: an overflow, which doubles the places).
 
     A vertex that comes to another block at one of its nodes, outside the span of both
     faces that meet there (corner to corner), or at the end of a face that meets its
@@ -712,6 +724,19 @@ def corner_bound(model: Model, sub: Sub, centroid, corners: dict, du):
     """
     geo = sub.geo
     a, b, p = geo["a"], geo["b"], geo["point"]
+    S = a.shape[0]
+    watch = corners["watch"]
+    if capacity < S:
+        # The watched vertices alone (seed example 2: 9,261 of 196,608 slots; the rows of
+        # all of them cost 23 ms a sub-step).
+        at = jnp.nonzero(watch, size=capacity, fill_value=S)[0]
+        full = jnp.sum(watch) > capacity
+        watch = at < S
+        at = jnp.minimum(at, S - 1)
+        a, b, p = a[at], b[at], p[at]
+        corners = {k: v[at] for k, v in corners.items()}
+    else:
+        full = jnp.array(False)
     step = block_steps(model)
     tol = CORNER_PASS * jnp.minimum(step[a], step[b])
     rel = gather_pairs(du, a, b)
@@ -734,8 +759,24 @@ def corner_bound(model: Model, sub: Sub, centroid, corners: dict, du):
     for i in range(2):
         reach = jnp.where(start[i] <= reach, jnp.maximum(reach, end[i]), reach)
     inside = (d[:, 0] <= -tol) & (d[:, 1] <= -tol)
-    reach = jnp.where(corners["watch"] & ~inside, reach, inf)
-    return jnp.minimum(jnp.min(reach, initial=inf), 1.0)
+    reach = jnp.where(watch & ~inside, reach, inf)
+    return jnp.minimum(jnp.min(reach, initial=inf), 1.0), full
+
+
+def _unpacked(model: Model, sub: Sub, ev: dict, sid) -> dict:
+    """What :func:`commit_substep` reads of an evaluation on the packed slots
+    (:func:`pack_slots`), laid out over all of ``sub``'s: the rest carry no spring
+    (forces 0, OPEN, their gaps and water forces as detected), as an evaluation of all
+    of them gives; the blocks' and bolts' fields as they are."""
+    def put(x, rest):
+        return rest.at[sid].set(x, mode="drop")
+
+    zero = jnp.zeros_like(sub.fn0)
+    return dict(
+        {k: v for k, v in ev.items() if k in ("stress", "R", "internal") or k.startswith("bolt_")},
+        fn=put(ev["fn"], zero), fs=put(ev["fs"], zero), gap=put(ev["gap"], sub.geo["gap"]),
+        state=put(ev["state"], jnp.full(sub.fn0.shape, OPEN, jnp.int32)),
+        total_n=put(ev["total_n"], sub.pw if model.has_water else zero))
 
 
 def newton_and_commit(mdl: Model, state: State, sub: Sub, st0, pairs, need):
@@ -748,21 +789,22 @@ def newton_and_commit(mdl: Model, state: State, sub: Sub, st0, pairs, need):
     """
     need = dict(need)
     corners = need.pop("corners")
-    packed, st0_packed, sid, too_many = pack_slots(mdl, sub, st0)
+    packed, st0_packed, sid, too_many, touching = pack_slots(mdl, sub, st0)
     c = _newton(mdl, packed, st0_packed)
-    scale = corner_bound(mdl, sub, state.centroid, corners, c.du)
+    scale, watch_full = corner_bound(mdl, sub, state.centroid, corners, c.du,
+                                     packed.geo["a"].shape[0])
+    too_many = too_many | watch_full
     cut = scale < 1.0
     c = c._replace(du=jnp.where(cut, scale * c.du, c.du), converged=c.converged & ~cut,
                    clipped=c.clipped | cut)
-    du, frozen, frozen_state, st = c.du, c.frozen & ~c.converged, c.frozen_state, c.st
-    if sid is not None:
-        frozen = jnp.zeros(st0.shape, bool).at[sid].set(frozen, mode="drop")
-        frozen_state = jnp.zeros_like(st0).at[sid].set(frozen_state, mode="drop")
-        st = st0.at[sid].set(st, mode="drop")
+    du = c.du
     # A converged sub-step returns (and commits) the law's own forces and
     # states, which balance the blocks; one cut short keeps the frozen ones.
-    ev = evaluate(mdl, sub, du, frozen, frozen_state, st, force_scales(mdl, sub)[1])
-    need = dict(need, slots_full=too_many)
+    ev = evaluate(mdl, packed, du, c.frozen & ~c.converged, c.frozen_state, c.st,
+                  force_scales(mdl, packed)[1])
+    if sid is not None:
+        ev = _unpacked(mdl, sub, ev, sid)
+    need = dict(need, slots_full=too_many, touching=touching)
     new_state, balance, snapshot = commit_substep(mdl, state, sub, pairs, du, ev)
     need = dict(need, new_failures=jnp.any(new_state.failed.reshape(-1) & ~sub.failed))
     return new_state, du, c, need, balance, snapshot

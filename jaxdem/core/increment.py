@@ -106,9 +106,9 @@ class Progress(NamedTuple):
     of the first two);
     ``travel`` (N,) each block's travel so far; ``residual`` the last sub-step's relative
     residual; ``balance`` and ``snapshot`` those of the last sub-step
-    (:func:`jaxdem.core._substep.commit_substep`); ``pairs_needed``, ``cell_full`` and
-    ``slots_full`` what the contact list needed; ``approximate`` a sub-step ended without
-    equilibrium.
+    (:func:`jaxdem.core._substep.commit_substep`); ``pairs_needed``, ``cell_full``,
+    ``slots_full`` and ``touch_needed`` what the contact list needed; ``approximate`` a
+    sub-step ended without equilibrium.
     With sensitivities, ``dstate`` and ``dsnapshot`` their derivatives (else None).
     """
 
@@ -125,6 +125,7 @@ class Progress(NamedTuple):
     pairs_needed: jax.Array
     cell_full: jax.Array
     slots_full: jax.Array
+    touch_needed: jax.Array
     approximate: jax.Array
     dstate: Any = None
     dsnapshot: Any = None
@@ -150,7 +151,8 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
         else:
             (st_new, du, newton, need, balance, snap), (dstate, dsnap) = substep_tangent(
                 model, c.state, loads, tangents["model"], c.dstate, tangents["loads"])
-        overflow = (need["pairs"] > state.capacity) | need["cell_full"] | need["slots_full"]
+        overflow = ((need["pairs"] > state.capacity) | need["cell_full"] | need["slots_full"]
+                    | (need["touching"] > model.touch_capacity))
         travel = c.travel + block_travel(model, du)
         small = jnp.max(block_travel(model, du)) <= model.touch_tol
         # A sub-step cut by the iteration limit that brought the residual below a
@@ -186,6 +188,7 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
                         pairs_needed=jnp.maximum(c.pairs_needed, need["pairs"]),
                         cell_full=c.cell_full | need["cell_full"],
                         slots_full=c.slots_full | need["slots_full"],
+                        touch_needed=jnp.maximum(c.touch_needed, need["touching"]),
                         approximate=c.approximate | ~newton.converged,
                         dstate=None if tangents is None else hold(c.dstate, dstate),
                         dsnapshot=dsnap)
@@ -202,12 +205,13 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
                     residual=jnp.array(jnp.inf, dtype), balance=zeros_like(balance0),
                     snapshot=zeros_like(snap0), pairs_needed=jnp.array(0),
                     cell_full=jnp.array(False), slots_full=jnp.array(False),
+                    touch_needed=jnp.array(0),
                     approximate=jnp.array(False),
                     dstate=dstate0, dsnapshot=dsnap0)
     c = jax.lax.while_loop(lambda c: c.status < 0, body, init)
     info = {k: getattr(c, k) for k in ("status", "substeps", "iterations", "travel", "residual",
                                        "balance", "snapshot", "pairs_needed", "cell_full",
-                                       "slots_full", "approximate")}
+                                       "slots_full", "touch_needed", "approximate")}
     info["joints"] = _joint_motion(model, state, c.state, c.snapshot)
     if tangents is not None:
         info.update(dstate=c.dstate, dsnapshot=c.dsnapshot)

@@ -327,11 +327,13 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
     big = np.concatenate([big, np.full(bucket(len(big)) - len(big), N - 1)]).astype(np.int32)
     use_cells = n_real > _USE_CELLS_ABOVE
     margin = 2.0 * step_length
+    candidates = _candidate_pairs(verts[:n_real], free[:n_real], margin)
     if capacity is None:
-        capacity = bucket(_initial_capacity(verts[:n_real], nv[:n_real], free[:n_real], margin,
-                                            use_cells))
+        capacity = bucket(_initial_capacity(candidates))
+    touch_capacity = _touch_capacity(verts, nv, candidates, margin, max(0.01 * L, touch_tol))
     cell_capacity = (bucket(_cell_capacity(verts[:n_real], radius[:n_real], big[big < n_real],
                                            margin)) if use_cells else 1)
+    narrow_vertices, wide_capacity = _narrow_split(verts[:n_real], nv[:n_real], margin, capacity)
     min_step = min(step_length, 0.25 * float(np.min(radius[:n_rock][free_rock], initial=np.inf)))
     max_substeps = int(math.ceil(max_disp / min_step)) * 3 + 50
     bolts = _bolts(scene, polys, cents, pieces, tol_geo * 1e3)
@@ -367,7 +369,9 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
         cell_D=_put(cell_D, dtype), bond_penalty=_put(BOND_PENALTY, dtype),
         verts0=_put(verts, dtype), centroid0=_put(all_cents, dtype),
         n_blocks=N, n_vertices=V, n_big=len(big), use_cells=use_cells,
-        cell_capacity=cell_capacity, linear_solver=linear_solver_for(s.linear_solver, n_rock * D),
+        cell_capacity=cell_capacity, narrow_vertices=narrow_vertices,
+        wide_capacity=wide_capacity, touch_capacity=touch_capacity,
+        linear_solver=linear_solver_for(s.linear_solver, n_rock * D),
         n_bolts=len(bolts["k"]), has_water=water is not None, ndof=D,
     )
     state = State(
@@ -570,15 +574,21 @@ def block_bucket(n: int) -> int:
     return next(m * (1 << k) // 4 for m in (5, 6, 7, 8) if m * (1 << k) // 4 >= n)
 
 
-def grown(model: Model, cell_full: bool, slots_full: bool) -> Model:
-    """``model`` after an increment's capacity overflow: the grid cells' capacity doubled
-    where a cell was full, the places of the touching slots
-    (:func:`jaxdem.core._substep.pack_slots`) doubled where they were too few. Each changes
+def grown(model: Model, cell_full: bool, slots_full: bool, touching: int = 0) -> Model:
+    """``model`` after an increment's capacity overflow: the broad phase's neighbour places
+    and the narrow phase's wide pairs (:func:`_narrow_split`) doubled where the detection
+    overflowed, the places of the touching slots
+    (:func:`jaxdem.core._substep.pack_slots`) doubled where they were too few, those of
+    the touching pairs grown where ``touching`` pairs did not fit. Each changes
     a static size, so the next call compiles again; nothing is truncated."""
     if cell_full:
-        model = dataclasses.replace(model, cell_capacity=2 * model.cell_capacity)
+        model = dataclasses.replace(model, cell_capacity=2 * model.cell_capacity,
+                                    wide_capacity=2 * model.wide_capacity)
     if slots_full:
         model = dataclasses.replace(model, slots_per_pair=2 * model.slots_per_pair)
+    if touching > model.touch_capacity:
+        model = dataclasses.replace(model, touch_capacity=bucket(
+            max(2 * model.touch_capacity, int(1.5 * touching) + 16)))
     return model
 
 
@@ -594,40 +604,141 @@ def bucket(n: int) -> int:
     return 3 << (k - 2) if k >= 2 and 3 << (k - 2) >= n else 1 << k
 
 
-def _initial_capacity(verts, nv, free, margin, use_cells) -> int:
-    """Pair capacity from the initial layout (sweep on x, NumPy), plus 16.
+def _candidate_pairs(verts, free, margin):
+    """The broad phase's pairs at the start, (i, j) (a sweep on x in NumPy): boxes grown
+    by the margin that overlap, one of the two blocks free."""
+    lo, hi = _boxes(verts, margin)
+    order = np.argsort(lo[:, 0], kind="stable")
+    lo, hi, free = lo[order], hi[order], free[order]
+    # Block i (in x order) against the blocks after it that start before it ends.
+    after = np.maximum(np.searchsorted(lo[:, 0], hi[:, 0], side="right") - np.arange(len(lo)) - 1,
+                       0)
+    i = np.repeat(np.arange(len(lo)), after)
+    j = i + 1 + np.arange(len(i)) - np.repeat(np.cumsum(after) - after, after)
+    ok = (lo[j, 1] <= hi[i, 1]) & (lo[i, 1] <= hi[j, 1]) & (free[i] | free[j])
+    return order[i[ok]], order[j[ok]]
+
+
+def _initial_capacity(pairs) -> int:
+    """Pair capacity from the initial layout's candidate pairs (:func:`_candidate_pairs`),
+    plus 16.
 
     The head-room is the capacity bucket's (:func:`bucket`: up to 50%): every
     padded pair costs its 2 V slots in detection and in each Newton iteration,
     and the solver grows the capacity (one recompilation) on overflow. The
     52-block benchmark tunnel has 230 candidate pairs: capacity 256, where a
     head-room of 1.5 times gave 384 and a sweep 25-40% slower (BENCHMARKS.md,
-    "Throughput"). Large scenes start from 5 pairs per block.
+    "Throughput"). Large scenes were given 5 pairs per block: seed example 2 has 7.4,
+    and every run of it overflowed in its first increment and loaded a second program.
     """
-    if use_cells:
-        return 5 * len(nv) + 16
-    lo, hi = _boxes(verts, margin)
-    order = np.argsort(lo[:, 0])
-    count = 0
-    for k, i in enumerate(order):
-        for j in order[k + 1:]:
-            if lo[j, 0] > hi[i, 0]:
-                break
-            if lo[j, 1] <= hi[i, 1] and lo[i, 1] <= hi[j, 1] and (free[i] or free[j]):
-                count += 1
-    return count + 16
+    return len(pairs[0]) + 16
+
+
+def _touch_capacity(verts, nv, pairs, margin, span_tol) -> int:
+    """Places for the touching pairs (:func:`jaxdem.core._substep.pack_slots`): the
+    candidate pairs at the start that touch, half as many again, plus 16 (the size class).
+
+    Touching as the narrow phase sees it, in NumPy and without its finer choices: a vertex
+    of one block within the margin of a face of the other (and of its nearest face),
+    inside that face's span, or with one of its own faces anti-parallel to it and
+    overlapping it or meeting it end to end (the narrow phase's overlap of two faces that
+    meet at a node is round-off, often a little above zero: the demo tunnel's 1,502
+    touching pairs at the start are 1,060 overlapping and 442 meeting at a node). Seed
+    example 2: 2,858 of its 8,678 candidate pairs touch.
+    """
+    V = verts.shape[1]
+    k = np.arange(V)
+    nxt = np.where(k + 1 < nv[:, None], k + 1, 0)
+    prev = np.where(k > 0, k - 1, nv[:, None] - 1)
+    d = np.take_along_axis(verts, nxt[..., None], axis=1) - verts
+    length = np.hypot(d[..., 0], d[..., 1])
+    edge = (k < nv[:, None]) & (length > 0)
+    tangent = d / np.where(edge, length, 1.0)[..., None]
+    normal = np.stack([tangent[..., 1], -tangent[..., 0]], -1)
+    cos_parallel = math.cos(math.radians(2.0))
+
+    def touch(x, y):  # a vertex of x bears on a face of y
+        p = np.arange(len(x))[:, None]
+        rel = verts[x][:, :, None, :] - verts[y][:, None, :, :]  # (p, V, E, 2)
+        dist = np.where(edge[y][:, None, :], np.einsum("pvek,pek->pve", rel, normal[y]),
+                        -np.inf)
+        # The faces it may bear on: within the margin, and within the margin of its
+        # nearest one.
+        near = ((dist <= margin) & (dist >= dist.max(axis=-1, keepdims=True) - margin)
+                & (k < nv[x][:, None])[..., None])
+        t, L = tangent[y][:, None, :, :], length[y][:, None, :]
+        s = np.einsum("pvek,pvek->pve", rel, np.broadcast_to(t, rel.shape))
+        bears = (s > span_tol) & (s < L - span_tol)
+        for own, other in ((tangent[x], nxt[x]), (tangent[x][p, prev[x]], prev[x])):
+            rel1 = verts[x][p, other][:, :, None, :] - verts[y][:, None, :, :]
+            s1 = np.einsum("pvek,pvek->pve", rel1, np.broadcast_to(t, rel1.shape))
+            # Overlapping or meeting end to end: the narrow phase's overlap of faces that
+            # meet at a node is round-off, often a little above zero.
+            meet = (np.minimum(s, s1) <= L + span_tol) & (np.maximum(s, s1) >= -span_tol)
+            anti = np.einsum("pvk,pek->pve", own, tangent[y]) < -cos_parallel
+            bears |= anti & meet
+        return np.any(near & bears, axis=(1, 2))
+
+    i, j = pairs
+    touching = sum(int(np.sum(touch(i[s:s + 10000], j[s:s + 10000])
+                              | touch(j[s:s + 10000], i[s:s + 10000])))
+                   for s in range(0, len(i), 10000))
+    return bucket(int(1.5 * touching) + 16)
 
 
 def _cell_capacity(verts, radius, big, margin) -> int:
-    """Most blocks in one grid cell at the start, doubled."""
+    """Neighbour places per block of the broad phase's grid (its blocks in the nine cells
+    around its own, on average) at the start, and half as many again, plus 2: blocks
+    move little before an overflow would double it (the size class :func:`bucket` adds
+    up to a half more). Every place costs a few gathers in each detection."""
     small = np.ones(len(radius), bool)
     small[big] = False
     cell = 2 * radius[small].max() + 2 * margin
     lo, hi = _boxes(verts, margin)
     c = 0.5 * (lo + hi)[small]
     keys = np.floor((c - c.min(0)) / cell).astype(np.int64)
-    _, counts = np.unique(keys[:, 0] * 2**20 + keys[:, 1], return_counts=True)
-    return int(2 * counts.max()) + 2
+    cells, counts = np.unique(keys, axis=0, return_counts=True)
+    held = dict(zip(map(tuple, cells.tolist()), counts.tolist(), strict=True))
+    places = sum(n * held.get((x + dx, y + dy), 0) for (x, y), n in held.items()
+                 for dx in (-1, 0, 1) for dy in (-1, 0, 1))
+    return int(math.ceil(1.5 * places / len(radius))) + 2
+
+
+#: The least number of vertex-face tests (per side of a pair) that :func:`_narrow_split`'s
+#: split of the narrow phase must save: seed example 2, 12,288 pairs of 1,269 triangles
+#: and two octagons, saves 620,000 (its detection 44 -> 13 ms); seed example 4, 1,024 pairs
+#: with 9-gons, 94,000 (none to see).
+SPLIT_SAVES = 300_000
+
+
+def _narrow_split(verts, nv, margin, capacity) -> tuple[int, int]:
+    """The narrow phase's vertex count for most pairs, and its capacity for the others.
+
+    The narrow phase tests each vertex of a pair's blocks against each face of the other:
+    V x V per side, V the most vertices of any block. Where a few blocks have many more
+    vertices than the rest (seed example 2: 1,269 triangles and two octagons, V = 8), the
+    pairs of blocks with at most v vertices are tested with v alone and the others
+    ("wide", one of their blocks has more) with V, in a list of their own. v is the
+    vertex count (of those the blocks have) that costs least, capacity x v^2 + wide
+    capacity x V^2, with the wide capacity the size class of twice the pairs of the
+    wider blocks at the start (boxes grown by the margin), plus 16. The second pass is a
+    second copy of the narrow phase in the program (1.3 s more to compile seed example
+    4, whose detection it made no faster): a split is taken where it saves at least
+    :data:`SPLIT_SAVES` vertex-face tests and half of them. Where none is, returns (V, 0):
+    the narrow phase then tests every pair with V, which may be fewer than the model's
+    (a size class).
+    """
+    V = int(nv.max())
+    lo, hi = _boxes(verts, margin)
+    whole = capacity * V * V
+    best = (whole - max(SPLIT_SAVES, whole // 2), V, 0)
+    for v in np.unique(nv)[:-1]:
+        wide = np.nonzero(nv > v)[0]
+        touching = ((lo[wide, None, 0] <= hi[None, :, 0]) & (lo[None, :, 0] <= hi[wide, None, 0])
+                    & (lo[wide, None, 1] <= hi[None, :, 1]) & (lo[None, :, 1] <= hi[wide, None, 1]))
+        wide_capacity = bucket(2 * (int(touching.sum()) - len(wide)) + 16)
+        best = min(best, (capacity * int(v) ** 2 + wide_capacity * V * V, int(v), wide_capacity))
+    return best[1], best[2]
 
 
 def _locate_monitors(scene, polys, cents, tol, excavation) -> dict:

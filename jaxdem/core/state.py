@@ -45,7 +45,8 @@ def _pytree(data: list[str], meta: list[str]):
         "joint_intact", "gamma_w", "bolt_blocks", "bolt_offsets", "bolt_k", "bolt_cap",
         "bolt_comp", "bolt_pullout", "cell_D", "bond_penalty", "verts0", "centroid0",
     ],
-    meta=["n_blocks", "n_vertices", "n_big", "use_cells", "cell_capacity", "linear_solver",
+    meta=["n_blocks", "n_vertices", "n_big", "use_cells", "cell_capacity", "narrow_vertices",
+          "wide_capacity", "touch_capacity", "linear_solver",
           "n_bolts", "has_water", "ndof", "lanes", "slots_per_pair"],
 )
 @dataclasses.dataclass(frozen=True)
@@ -108,10 +109,21 @@ class Model:
         centroids. A rigid block's position is this reference moved by its
         accumulated (u, rot), never a sum of many small moves: in float32 a
         load step's move can be below the resolution of a coordinate.
-      n_blocks, n_vertices, n_big, cell_capacity, n_bolts: static sizes.
-      slots_per_pair: places per candidate pair for the touching slots that the Newton
-        iteration works on (:func:`jaxdem.core._substep.pack_slots`); doubled, with a
-        recompilation, when a sub-step has more (2 V or more: every slot, unpacked).
+      n_blocks, n_vertices, n_big, n_bolts: static sizes.
+      cell_capacity: the broad phase's neighbour places per block (its blocks in the
+        nine grid cells around its own, on average); doubled, with a recompilation,
+        when the blocks have more.
+      narrow_vertices, wide_capacity: the narrow phase tests the pairs of blocks with at
+        most ``narrow_vertices`` vertices with that many, and the others (at most
+        ``wide_capacity`` pairs, doubled with ``cell_capacity``) with V
+        (:func:`jaxdem.core.model._narrow_split`).
+      touch_capacity: places for the touching pairs (a slot within the contact margin), the
+        pairs that the Newton iteration works on (:func:`jaxdem.core._substep.pack_slots`);
+        grown, with a recompilation, when a sub-step has more.
+      slots_per_pair: the touching slots are packed into ``slots_per_pair`` x
+        ``touch_capacity`` places, at most twice ``slots_per_pair`` of them for one pair;
+        doubled, with a recompilation, when a sub-step has more (every slot, unpacked,
+        where that is 2 V x P or more).
       ndof: degrees of freedom per block, D: 3 (rigid: ux, uy, rotation) or 6
         (deformable, constant strain: also eps_x, eps_y, gamma_xy).
       use_cells: grid broad phase (else all pairs).
@@ -169,6 +181,9 @@ class Model:
     n_big: int
     use_cells: bool
     cell_capacity: int
+    narrow_vertices: int
+    wide_capacity: int
+    touch_capacity: int
     linear_solver: str
     n_bolts: int = 0
     has_water: bool = False
