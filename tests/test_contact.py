@@ -235,9 +235,16 @@ def test_narrow_phase_tests_most_pairs_with_their_own_vertex_count():
     ``wide_capacity``: :func:`jaxdem.core.model._narrow_split`). The slots are those of
     testing every pair with 8: the same touching slots, and their gaps, points, normals,
     shares and centroid distances to 1e-12 (round-off of a different order of operations).
-    Too few places for the wide pairs are an overflow of the detection, not a truncation."""
+    Too few places for the wide pairs are an overflow of the detection, not a truncation.
+    (So small a scene is not split: it would save too few tests to pay for a second copy
+    of the narrow phase in the program. With room for 100,000 pairs it is.)"""
     model, state, _ = model_mod.build(_scene(_triangles_under_octagons()))
-    assert model.n_vertices == 8 and model.narrow_vertices == 3 and model.wide_capacity > 0
+    assert model.n_vertices == 8 and model.narrow_vertices == 8
+    real = np.asarray(state.alive)  # the dead blocks of the size class left out
+    v, wide = model_mod._narrow_split(np.asarray(state.verts)[real], np.asarray(model.nv)[real],
+                                      float(model.margin), 100_000)
+    assert v == 3 and wide > 0
+    model = dataclasses.replace(model, narrow_vertices=v, wide_capacity=wide)
     pairs, _, full = broad_phase(model, state.verts, state.capacity, state.alive)
     assert not bool(full)
     split = narrow_phase(model, state.verts, state.centroid, pairs)
