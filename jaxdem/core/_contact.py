@@ -241,7 +241,9 @@ def _slot_geometry(model: Model, xv, x_next, x_prev, cx, cy, q, n, t, L_e, l_out
     s1 = _dot(other - q, t)
     lo = jnp.clip(jnp.minimum(s0, s1), 0.0, L_e)
     hi = jnp.clip(jnp.maximum(s0, s1), 0.0, L_e)
-    overlap = hi - lo
+    # Faces that meet end to end at a node overlap by round-off (1e-16 m, on either side of
+    # zero): no length.
+    overlap = jnp.where(hi - lo > model.touch_tol, hi - lo, 0.0)
     # Gap at the far end of the overlap (linear along the faces): faces within
     # 2 degrees of parallel can still be a sliver's width apart there.
     d1 = _dot(other - q, n)

@@ -330,7 +330,10 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
     candidates = _candidate_pairs(verts[:n_real], free[:n_real], margin)
     if capacity is None:
         capacity = bucket(_initial_capacity(candidates))
-    touch_capacity = _touch_capacity(verts, nv, candidates, margin, max(0.01 * L, touch_tol))
+    # At most the candidate pairs (more would never be used, and two scenes of one size
+    # class would get two programs).
+    touch_capacity = min(_touch_capacity(verts, nv, candidates, margin, max(0.01 * L, touch_tol)),
+                         capacity)
     cell_capacity = (bucket(_cell_capacity(verts[:n_real], radius[:n_real], big[big < n_real],
                                            margin)) if use_cells else 1)
     narrow_vertices, wide_capacity = _narrow_split(verts[:n_real], nv[:n_real], margin, capacity)
