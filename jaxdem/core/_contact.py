@@ -198,7 +198,7 @@ def broad_phase(model: Model, verts: jax.Array, capacity: int, alive: jax.Array)
 
 def _wide_full(model: Model, pairs):
     """More wide pairs (:func:`wide_pairs`) than the narrow phase has places for."""
-    if model.narrow_vertices >= model.n_vertices:
+    if model.narrow_vertices >= model.n_vertices or not model.wide_capacity:
         return jnp.array(False)
     return jnp.sum(wide_pairs(model, pairs)) > model.wide_capacity
 
@@ -284,14 +284,13 @@ def _slot_finish(model: Model, g, halved, X, Y, widths):
                 h_b=jnp.maximum(g["h_y"], 0.1 * jnp.minimum(model.radius[Y], widths[Y])))
 
 
-def _vertex_edge(model: Model, xv, nvx, vmx, cx, ex, ey, cy, width, not_dup):
+def _vertex_edge(model: Model, xv, nvx, vmx, cx, ex, ey, cy, width):
     """Slots of the vertices of block X against the edges of block Y, per pair.
 
     Args:
       xv: (P, V, 2) vertices of X; nvx: (P,) counts; vmx: (P, V) mask.
       cx, cy: (P, 2) centroids. ex, ey: edges of X and of Y (output of :func:`edges`).
       width: (P,) Y's least width (:func:`block_widths`).
-      not_dup: (P, V) bool, False for vertices already counted from the other side.
     Returns a dict of (P, V) arrays: active, gap (m, negative = overlap), point,
     normal and tangent of the contacted face, edge index, share (m), h_x, h_y (m),
     own_edge (X's face anti-parallel to it, or -1), far_gap and far_point; watch,
@@ -392,7 +391,7 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ex, ey, cy, width, not_dup):
     # point must not hop to the other block's vertex and lose its history.
     s_e = g.pop("s_e")
     in_span = (s_e >= -model.span_tol) & (s_e <= L_e + model.span_tol)
-    near = vmx & not_dup & (dmax <= model.margin) & in_span & ~beside
+    near = vmx & (dmax <= model.margin) & in_span & ~beside
     # Faces that meet end to end (a diagonal neighbour on a grid) share no
     # length: no spring.
     active = near & (g["share"] > 0)
@@ -411,7 +410,6 @@ def _pair_slots(model: Model, verts, nv, vmask, e_all, widths, centroid, pairs):
     ``widths`` from all of them)."""
     N = model.n_blocks
     P = pairs.shape[0]
-    V = verts.shape[1]
     valid = pairs[:, 0] < N
     a = jnp.clip(pairs[:, 0], 0, N - 1)
     b = jnp.clip(pairs[:, 1], 0, N - 1)
@@ -421,9 +419,14 @@ def _pair_slots(model: Model, verts, nv, vmask, e_all, widths, centroid, pairs):
     vmb = vmask[b] & valid[:, None]
     ea, eb = (tuple(x[a] for x in e_all), tuple(x[b] for x in e_all))
     ca, cb = centroid[a], centroid[b]
-    every = jnp.ones((P, V), bool)
-    s0 = _vertex_edge(model, va, nva, vma, ca, ea, eb, cb, widths[b], every)
-    s1 = _vertex_edge(model, vb, nvb, vmb, cb, eb, ea, ca, widths[a], every)
+    # Both sides in one call, the second side's pairs after the first's: one copy of the
+    # vertex-face tests in the program, not two (a program's size is its time to compile
+    # and to load).
+    both = lambda x, y: jnp.concatenate([x, y])  # noqa: E731
+    s = _vertex_edge(model, both(va, vb), both(nva, nvb), both(vma, vmb), both(ca, cb),
+                     tuple(map(both, ea, eb)), tuple(map(both, eb, ea)), both(cb, ca),
+                     both(widths[b], widths[a]))
+    s0, s1 = ({k: x[:P] for k, x in s.items()}, {k: x[P:] for k, x in s.items()})
     # A vertex of b at a contact point of a vertex of a (within that point's
     # overlap) is the same contact point, seen from both sides: each side's slot
     # takes half of it. Keeping one side's only (the lower block index's) made

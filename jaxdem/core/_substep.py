@@ -742,18 +742,22 @@ def corner_bound(model: Model, sub: Sub, centroid, corners: dict, du, capacity: 
     rel = gather_pairs(du, a, b)
     d = corners["node_gap"]
     inf = jnp.inf
-    start, end = [], []
-    for i in range(2):
-        rows = b_rows(sub.free, a, b, p, p, corners["node_normal"][:, i], centroid, model.ndof)
-        delta = jnp.sum(rows * rel, axis=1)
-        # Out of the block on [start, end): from 0 until it crosses the line going
-        # in; or, behind the line now, from when it comes back out. s at which the
-        # vertex is tol behind the line (inf where it never gets there):
-        safe = jnp.where(delta != 0, delta, 1.0)
-        crossing = jnp.where(delta != 0, -(d[:, i] + tol) / safe, inf)
-        out = d[:, i] > -tol
-        end.append(jnp.where(out & (delta < 0), crossing, inf))
-        start.append(jnp.where(out, 0.0, jnp.where(delta > 0, crossing, inf)))
+    # Both faces at once, the second's vertices after the first's (one copy of the rows
+    # in the program).
+    K = a.shape[0]
+    two = lambda x: jnp.concatenate([x, x])  # noqa: E731
+    rows = b_rows(sub.free, two(a), two(b), two(p), two(p),
+                  jnp.concatenate([corners["node_normal"][:, 0], corners["node_normal"][:, 1]]),
+                  centroid, model.ndof)
+    delta = jnp.sum(rows * two(rel), axis=1).reshape(2, K)
+    # Out of the block on [start, end): from 0 until it crosses the line going
+    # in; or, behind the line now, from when it comes back out. s at which the
+    # vertex is tol behind the line (inf where it never gets there):
+    safe = jnp.where(delta != 0, delta, 1.0)
+    crossing = jnp.where(delta != 0, -(d.T + tol) / safe, inf)
+    out = d.T > -tol
+    end = jnp.where(out & (delta < 0), crossing, inf)
+    start = jnp.where(out, 0.0, jnp.where(delta > 0, crossing, inf))
     reach = jnp.maximum(jnp.where(start[0] <= 0, end[0], 0.0),
                         jnp.where(start[1] <= 0, end[1], 0.0))
     for i in range(2):
