@@ -636,7 +636,7 @@ def pack_slots(model: Model, sub: Sub, st0):
     sub-step's Newton iteration: it works on them alone (a tenth of S on the demo tunnel:
     4,478 of 36,864), which makes its evaluations and its assembly that much cheaper.
     Of the P candidate pairs, only those with a touching slot couple their blocks (seed
-    example 2: 2,858 of 8,678): the assembly sums those pairs' slots alone, into that many
+    example 2: 2,529 of 8,678): the assembly sums those pairs' slots alone, into that many
     blocks of the matrix. Empty places are inactive with zero rows. The packed list keeps
     the detection's order, so each pair's slots lie side by side: ``grid`` (touch_capacity,
     m) gives their places, m = :func:`pair_places`, for the assembly's sum over a pair's
