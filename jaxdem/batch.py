@@ -549,7 +549,9 @@ class _BatchDriver:
             st, overflow = fn(self.model, self.fields, self.state, loads, args)
             if not bool(np.asarray(overflow).any()):
                 break
+            # Pairs, or the detection's places (as the solver's preload): grow both.
             self.state = _grow(self.state, model_mod.bucket(2 * self.state.capacity))
+            self.model = model_mod.grown(self.model, True, False)
         self.state = st
 
 

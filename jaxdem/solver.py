@@ -549,7 +549,11 @@ class _Driver:
                     self.model, self.state, loads, args, data.dmodel, dloads, dargs, mode=mode)
             if not bool(overflow):
                 break
+            # More candidate pairs than places, or more neighbours in the grid's cells or
+            # wide pairs than the detection's places (the preload says only that one
+            # overflowed): grow both, and redo.
             self.state = grow_capacity(self.state, model_mod.bucket(2 * self.state.capacity))
+            self.model = model_mod.grown(self.model, True, False)
         self.state = st
 
 
