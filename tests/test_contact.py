@@ -252,7 +252,7 @@ def test_narrow_phase_tests_most_pairs_with_their_own_vertex_count():
                          state.centroid, pairs)
     act = np.asarray(whole["active"])
     np.testing.assert_array_equal(np.asarray(split["active"]), act)
-    # Each octagon bears on the two triangles under it, face to face, and they on it.
+    # Each octagon's two bottom corners bear on the triangle under it, face to face.
     on_octagons = act & (np.asarray(whole["a"]) >= 20) | act & (np.asarray(whole["b"]) >= 20)
     assert on_octagons.sum() >= 6
     for k in ("gap", "point", "normal", "share", "h_a", "h_b", "far_gap"):
