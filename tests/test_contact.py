@@ -241,8 +241,9 @@ def test_narrow_phase_tests_most_pairs_with_their_own_vertex_count():
     model, state, _ = model_mod.build(_scene(_triangles_under_octagons()))
     assert model.n_vertices == 8 and model.narrow_vertices == 8
     real = np.asarray(state.alive)  # the dead blocks of the size class left out
-    v, wide = model_mod._narrow_split(np.asarray(state.verts)[real], np.asarray(model.nv)[real],
-                                      float(model.margin), 100_000)
+    pairs = model_mod._candidate_pairs(np.asarray(state.verts)[real],
+                                       np.asarray(model.free)[real], float(model.margin))
+    v, wide = model_mod._narrow_split(np.asarray(model.nv)[real], pairs, 100_000)
     assert v == 3 and wide > 0
     model = dataclasses.replace(model, narrow_vertices=v, wide_capacity=wide)
     pairs, _, full = broad_phase(model, state.verts, state.capacity, state.alive)

@@ -336,7 +336,7 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
                          capacity)
     cell_capacity = (bucket(_cell_capacity(verts[:n_real], radius[:n_real], big[big < n_real],
                                            margin)) if use_cells else 1)
-    narrow_vertices, wide_capacity = _narrow_split(verts[:n_real], nv[:n_real], margin, capacity)
+    narrow_vertices, wide_capacity = _narrow_split(nv[:n_real], candidates, capacity)
     min_step = min(step_length, 0.25 * float(np.min(radius[:n_rock][free_rock], initial=np.inf)))
     max_substeps = int(math.ceil(max_disp / min_step)) * 3 + 50
     bolts = _bolts(scene, polys, cents, pieces, tol_geo * 1e3)
@@ -608,18 +608,12 @@ def bucket(n: int) -> int:
 
 
 def _candidate_pairs(verts, free, margin):
-    """The broad phase's pairs at the start, (i, j) (a sweep on x in NumPy): boxes grown
-    by the margin that overlap, one of the two blocks free."""
+    """The broad phase's pairs at the start, (i, j): boxes grown by the margin that overlap
+    (:func:`jaxdem.geometry.near_box_pairs`), one of the two blocks free."""
     lo, hi = _boxes(verts, margin)
-    order = np.argsort(lo[:, 0], kind="stable")
-    lo, hi, free = lo[order], hi[order], free[order]
-    # Block i (in x order) against the blocks after it that start before it ends.
-    after = np.maximum(np.searchsorted(lo[:, 0], hi[:, 0], side="right") - np.arange(len(lo)) - 1,
-                       0)
-    i = np.repeat(np.arange(len(lo)), after)
-    j = i + 1 + np.arange(len(i)) - np.repeat(np.cumsum(after) - after, after)
-    ok = (lo[j, 1] <= hi[i, 1]) & (lo[i, 1] <= hi[j, 1]) & (free[i] | free[j])
-    return order[i[ok]], order[j[ok]]
+    i, j = geometry.near_box_pairs(np.concatenate([lo, hi], axis=1), 0.0)
+    keep = free[i] | free[j]
+    return i[keep], j[keep]
 
 
 def _initial_capacity(pairs) -> int:
@@ -714,7 +708,7 @@ def _cell_capacity(verts, radius, big, margin) -> int:
 SPLIT_SAVES = 300_000
 
 
-def _narrow_split(verts, nv, margin, capacity) -> tuple[int, int]:
+def _narrow_split(nv, pairs, capacity) -> tuple[int, int]:
     """The narrow phase's vertex count for most pairs, and its capacity for the others.
 
     The narrow phase tests each vertex of a pair's blocks against each face of the other:
@@ -723,23 +717,20 @@ def _narrow_split(verts, nv, margin, capacity) -> tuple[int, int]:
     pairs of blocks with at most v vertices are tested with v alone and the others
     ("wide", one of their blocks has more) with V, in a list of their own. v is the
     vertex count (of those the blocks have) that costs least, capacity x v^2 + wide
-    capacity x V^2, with the wide capacity the size class of twice the pairs of the
-    wider blocks at the start (boxes grown by the margin), plus 16. The second pass is a
-    second copy of the narrow phase in the program (1.3 s more to compile seed example
-    4, whose detection it made no faster): a split is taken where it saves at least
-    :data:`SPLIT_SAVES` vertex-face tests and half of them. Where none is, returns (V, 0):
-    the narrow phase then tests every pair with V, which may be fewer than the model's
-    (a size class).
+    capacity x V^2, with the wide capacity the size class of twice the candidate pairs
+    at the start (``pairs``, :func:`_candidate_pairs`) with a wider block, plus 16. The
+    second pass is a second copy of the narrow phase in the program (1.3 s more to
+    compile seed example 4, whose detection it made no faster): a split is taken where
+    it saves at least :data:`SPLIT_SAVES` vertex-face tests and half of them. Where none
+    is, returns (V, 0): the narrow phase then tests every pair with V, which may be fewer
+    than the model's (a size class).
     """
     V = int(nv.max())
-    lo, hi = _boxes(verts, margin)
+    i, j = pairs
     whole = capacity * V * V
     best = (whole - max(SPLIT_SAVES, whole // 2), V, 0)
     for v in np.unique(nv)[:-1]:
-        wide = np.nonzero(nv > v)[0]
-        touching = ((lo[wide, None, 0] <= hi[None, :, 0]) & (lo[None, :, 0] <= hi[wide, None, 0])
-                    & (lo[wide, None, 1] <= hi[None, :, 1]) & (lo[None, :, 1] <= hi[wide, None, 1]))
-        wide_capacity = bucket(2 * (int(touching.sum()) - len(wide)) + 16)
+        wide_capacity = bucket(2 * int(np.sum((nv[i] > v) | (nv[j] > v))) + 16)
         best = min(best, (capacity * int(v) ** 2 + wide_capacity * V * V, int(v), wide_capacity))
     return best[1], best[2]
 
