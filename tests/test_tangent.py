@@ -56,20 +56,55 @@ def test_slip_tangent_is_the_derivative_of_the_residual_in_held_states():
                & ~np.asarray(sub.prop["bonded"]))
     assert in_band.sum() >= 2 and np.allclose(fs[in_band], fs_trial[in_band])
     frozen = jnp.asarray(active)
+    Kv, fd = _tangent_and_difference(mdl, sub, du, frozen, held, band, rng, size)
+    assert np.linalg.norm(Kv) > 0
+    np.testing.assert_allclose(Kv, fd, rtol=0, atol=1e-6 * np.abs(Kv).max())
 
+
+def test_exact_tangent_of_slots_held_stuck_beyond_their_strength():
+    """Slots held (frozen) STICK where the law has them slip carry the limit
+    (:func:`jaxdem.core.laws.forces_in_state`): with ``exact`` their shear spring goes and
+    K v is the central difference of -R (relative 1e-6); without it (the stiffness the
+    Newton iteration uses until a tried step fails) it is not."""
+    model, state, _ = model_mod.build(parse_scene(jointed_tunnel(water=False, bolts=False)))
+    loads = make_loads(model, model.f_ext)
+    mdl, sub, st0, _, _ = prepare_substep(model, state, loads)
+    rng = np.random.default_rng(3)
+    free = np.asarray(sub.free)[:, None]
+    size = float(np.max(np.asarray(model.radius)))
+    du = jnp.asarray(rng.normal(0.0, 2e-4 * size, (mdl.n_blocks, mdl.ndof)) * free)
+    none = jnp.zeros_like(st0, bool)
+    law = evaluate(mdl, sub, du, none, none.astype(st0.dtype), st0, 0.0)
+    active = np.asarray(sub.geo["active"])
+    slipping = active & (np.asarray(law["state"]) == SLIP)
+    assert slipping.sum() >= 4, "the move should make joints slip"
+    held = jnp.where(jnp.asarray(slipping), STICK, law["state"])
+    frozen = jnp.asarray(active)
+    ev = evaluate(mdl, sub, du, frozen, held, held, 0.0)
+    # Held stuck, they carry the limit, as the law does.
+    np.testing.assert_allclose(np.asarray(ev["fs"])[slipping], np.asarray(law["fs"])[slipping],
+                               rtol=1e-12)
+    Kv, fd = _tangent_and_difference(mdl, sub, du, frozen, held, 0.0, rng, size, exact=True)
+    np.testing.assert_allclose(Kv, fd, rtol=0, atol=1e-6 * np.abs(Kv).max())
+    rng = np.random.default_rng(3)
+    Kv, fd = _tangent_and_difference(mdl, sub, du, frozen, held, 0.0, rng, size, exact=False)
+    assert np.abs(Kv - fd).max() > 1e-3 * np.abs(Kv).max()
+
+
+def _tangent_and_difference(mdl, sub, du, frozen, held, band, rng, size, exact=False):
+    """K v of the slip tangent with its coupling (states ``held``) and the central
+    difference of -R along a random v."""
     def at(x):
         return evaluate(mdl, sub, x, frozen, held, held, band)
 
     ev = at(du)
-    terms = stiffness_terms(mdl, sub, ev, jnp.asarray(True))
+    terms = stiffness_terms(mdl, sub, ev, jnp.asarray(True), exact=jnp.asarray(exact))
     coupling = slip_coupling(sub, ev, jnp.asarray(True))
     zero = jnp.zeros(mdl.n_blocks * mdl.ndof)
     K = np.asarray(assemble_dense(mdl, sub, *_unsymmetric(sub, terms, coupling), zero))
+    free = np.asarray(sub.free)[:, None]
     v = rng.normal(0.0, 1.0, du.shape) * free
     h = 1e-7 * size
     R_plus = np.asarray(at(du + h * jnp.asarray(v))["R"]).reshape(-1)
     R_minus = np.asarray(at(du - h * jnp.asarray(v))["R"]).reshape(-1)
-    fd = -(R_plus - R_minus) / (2 * h)
-    Kv = K @ v.reshape(-1)
-    assert np.linalg.norm(Kv) > 0
-    np.testing.assert_allclose(Kv, fd, rtol=0, atol=1e-6 * np.abs(Kv).max())
+    return K @ v.reshape(-1), -(R_plus - R_minus) / (2 * h)

@@ -231,7 +231,7 @@ def block_scale(model: Model, sub: Sub, ev=None):
     return s
 
 
-def stiffness_terms(model: Model, sub: Sub, ev, consistent, near=None):
+def stiffness_terms(model: Model, sub: Sub, ev, consistent, near=None, exact=False):
     """The iteration matrix K_t = sum_m k_m B_m B_m^T as rank-one terms (a, b, B, k).
 
     Closed slots carry both springs: for a slipping slot this is the elastic
@@ -247,6 +247,10 @@ def stiffness_terms(model: Model, sub: Sub, ev, consistent, near=None):
     a finite move (bounded by the step length) instead of creeping at
     elastic speed. ``near`` (S,): open slots that keep their normal spring (an open
     slot within a few hysteresis bands of closing, :data:`jaxdem.core._substep.NEAR`).
+    ``exact`` (with ``consistent``): a slot held stuck beyond its strength (frozen
+    STICK, :func:`jaxdem.core.laws.forces_in_state`) carries the limit, which does not
+    follow its shear displacement, and loses its shear spring too; without ``exact`` it
+    keeps it (the stiffness of the state it is held in).
     """
     st = ev["state"]
     closed = sub.geo["active"] & (st != OPEN)
@@ -261,6 +265,8 @@ def stiffness_terms(model: Model, sub: Sub, ev, consistent, near=None):
     free_slip = (closed & (st == SLIP)
                  & (jnp.abs(ev["fs"]) < SLIP_SECANT * jnp.abs(ev["fs_trial"])))
     ks = jnp.where(free_slip, 0.0, ks)
+    capped = closed & (st == STICK) & (jnp.abs(ev["fs"]) < jnp.abs(ev["fs_trial"]))
+    ks = jnp.where(exact & consistent & capped, 0.0, ks)
     a, b = sub.geo["a"], sub.geo["b"]
     terms = [(a, b, sub.Bn, kn), (a, b, sub.Bs, ks)]
     if model.n_bolts:
