@@ -397,13 +397,16 @@ def _newton(model: Model, sub: Sub, st0):
                        tangent=tangent, untried=untried, lost=lost, flat=flat, fails=fails)
 
     inf = jnp.array(jnp.inf, dtype)
+    # Counters int32 like the flips (not the weakly typed jnp.array(0), whose sum with
+    # them is int32: JAX then traced the body twice, 0.3 s of every compilation).
+    zero = jnp.zeros((), jnp.int32)
     init = Iterate(du=jnp.zeros((N, model.ndof), dtype), st=st0, flips=zeros_s,
-                   frozen=jnp.zeros(S, bool), frozen_state=zeros_s, it=jnp.array(0),
+                   frozen=jnp.zeros(S, bool), frozen_state=zeros_s, it=zero,
                    done=jnp.array(False), converged=jnp.array(False),
                    clipped=jnp.array(False), finite=jnp.array(True), rnorm=inf, rprev=inf,
-                   stall=jnp.array(0), settled=jnp.array(0), trying=jnp.array(False),
+                   stall=zero, settled=zero, trying=jnp.array(False),
                    tangent=jnp.array(False), untried=jnp.array(True), lost=jnp.array(False),
-                   flat=jnp.array(0), fails=jnp.array(0))
+                   flat=zero, fails=zero)
     return jax.lax.while_loop(lambda c: ~c.done, body, init)
 
 
@@ -417,16 +420,18 @@ def _line_search(merit_at, du, ddu, scale, m0, on):
     def sufficient(s, m):
         return m <= (1.0 - ARMIJO * s / jnp.maximum(scale, jnp.finfo(m0.dtype).tiny)) * m0
 
+    # k halvings so far; -1: ``scale`` itself not yet tried (one evaluation of the merit
+    # in the program, not two).
     def cond(q):
         s, k, m = q
-        return on & ~sufficient(s, m) & (k < LINE_SEARCH_HALVINGS)
+        return on & ((k < 0) | (~sufficient(s, m) & (k < LINE_SEARCH_HALVINGS)))
 
     def body(q):
-        s = 0.5 * q[0]
-        return s, q[1] + 1, merit_at(du + s * ddu)
+        s, k, _ = q
+        s = jnp.where(k < 0, s, 0.5 * s)
+        return s, k + 1, merit_at(du + s * ddu)
 
-    m1 = jax.lax.cond(on, lambda: merit_at(du + scale * ddu), lambda: m0)
-    s, _, m = jax.lax.while_loop(cond, body, (scale, jnp.array(0), m1))
+    s, _, m = jax.lax.while_loop(cond, body, (scale, jnp.array(-1), m0))
     return jnp.where(on & sufficient(s, m), s, scale)
 
 
@@ -783,7 +788,7 @@ def _unpacked(model: Model, sub: Sub, ev: dict, sid) -> dict:
 
     zero = jnp.zeros_like(sub.fn0)
     return dict(
-        {k: v for k, v in ev.items() if k in ("stress", "R", "internal") or k.startswith("bolt_")},
+        {k: v for k, v in ev.items() if k == "stress" or k.startswith("bolt_")},
         fn=put(ev["fn"], zero), fs=put(ev["fs"], zero), gap=put(ev["gap"], sub.geo["gap"]),
         state=put(ev["state"], jnp.full(sub.fn0.shape, OPEN, jnp.int32)),
         total_n=put(ev["total_n"], sub.pw if model.has_water else zero))

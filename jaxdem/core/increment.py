@@ -178,17 +178,18 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
             [s.code for s in (Status.CAPACITY_OVERFLOW, Status.NON_FINITE, Status.OVERLAP,
                               Status.LAW_VIOLATION, Status.IMBALANCE, Status.CONVERGED,
                               Status.MECHANISM, Status.ITERATION_LIMIT)],
-            -1)
+            -1).astype(jnp.int32)
         keep = overflow | ~newton.finite
         hold = lambda old, new: jax.tree.map(lambda o, n: jnp.where(keep, o, n), old, new)  # noqa: E731
         return Progress(state=hold(c.state, st_new), status=status, substeps=substeps,
                         stuck=stuck, best=best, iterations=c.iterations + newton.it,
                         travel=travel,
                         residual=newton.rnorm, balance=balance, snapshot=snap,
-                        pairs_needed=jnp.maximum(c.pairs_needed, need["pairs"]),
+                        pairs_needed=jnp.maximum(c.pairs_needed, need["pairs"].astype(jnp.int32)),
                         cell_full=c.cell_full | need["cell_full"],
                         slots_full=c.slots_full | need["slots_full"],
-                        touch_needed=jnp.maximum(c.touch_needed, need["touching"]),
+                        touch_needed=jnp.maximum(c.touch_needed,
+                                                 need["touching"].astype(jnp.int32)),
                         approximate=c.approximate | ~newton.converged,
                         dstate=None if tangents is None else hold(c.dstate, dstate),
                         dsnapshot=dsnap)
@@ -199,13 +200,16 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
         dstate0 = tangents["state"]
         p = jax.tree.leaves(tangents["state"])[0].shape[0]
         dsnap0 = {k: jnp.zeros((p,) + snap0[k].shape, dtype) for k in SNAPSHOT_FLOATS}
-    init = Progress(state=state, status=status0, substeps=jnp.array(0), stuck=jnp.array(0),
+    # Counters int32, as the body makes them (a weakly typed jnp.array(0) that the body
+    # turns into int32 makes JAX trace the body twice).
+    zero = jnp.zeros((), jnp.int32)
+    init = Progress(state=state, status=status0.astype(jnp.int32), substeps=zero, stuck=zero,
                     best=jnp.array(jnp.inf, dtype),
-                    iterations=jnp.array(0), travel=jnp.zeros(N, dtype),
+                    iterations=zero, travel=jnp.zeros(N, dtype),
                     residual=jnp.array(jnp.inf, dtype), balance=zeros_like(balance0),
-                    snapshot=zeros_like(snap0), pairs_needed=jnp.array(0),
+                    snapshot=zeros_like(snap0), pairs_needed=zero,
                     cell_full=jnp.array(False), slots_full=jnp.array(False),
-                    touch_needed=jnp.array(0),
+                    touch_needed=zero,
                     approximate=jnp.array(False),
                     dstate=dstate0, dsnapshot=dsnap0)
     c = jax.lax.while_loop(lambda c: c.status < 0, body, init)
