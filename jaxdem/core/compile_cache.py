@@ -219,15 +219,18 @@ def _load_program(path: Path):
         from jax._src.lax.linalg import initialize_lapack
         from jax.experimental import serialize_executable
 
-        # A loaded program calls LAPACK (the dense LU) without a lowering that
-        # would have set up its kernels first: without this it crashes. The same
-        # for the sparse solve's FFI targets, registered when sparsax is imported.
-        initialize_lapack()
+        blob, in_tree, out_tree, lapack = pickle.loads(zlib.decompress(path.read_bytes()))
+        # A loaded program that calls LAPACK (the dense LU, a bolt's eigenvalues) does so
+        # without a lowering that would have set up its kernels first: without this it
+        # crashes (the set-up imports SciPy's BLAS and LAPACK: 0.13 s, which a program
+        # without LAPACK, the sparse path's, does not pay). The same for the sparse
+        # solve's FFI targets, registered when sparsax is imported.
+        if lapack:
+            initialize_lapack()
         try:
             import sparsax  # noqa: F401
         except ImportError:
             pass
-        blob, in_tree, out_tree = pickle.loads(zlib.decompress(path.read_bytes()))
         return serialize_executable.deserialize_and_load(blob, in_tree, out_tree)
     except Exception:  # noqa: BLE001 - any failure: compile instead
         return None
@@ -241,7 +244,8 @@ def _store_program(path: Path, compiled) -> None:
     try:
         from jax.experimental import serialize_executable
 
-        data = zlib.compress(pickle.dumps(serialize_executable.serialize(compiled)), 1)
+        lapack = "lapack_" in compiled.as_text()
+        data = zlib.compress(pickle.dumps((*serialize_executable.serialize(compiled), lapack)), 1)
         path.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=path.parent, delete=False) as f:
             f.write(data)
