@@ -114,24 +114,30 @@ def test_host_work_runs_once_while_a_program_compiles(xla_compiles):
     assert ran == ["jaxdem-host-task"] and len(xla_compiles) == 2
 
 
-def test_the_increment_traces_its_sub_step_once(monkeypatch):
-    """The loop's carry shapes and its body share one trace of the sub-step (a second trace
-    cost 0.1-0.2 s of every cold run)."""
-    traced = []
-    prepare = substep.prepare_substep
+def _calls_in_trace(monkeypatch, name):
+    """How often ``jaxdem.core._substep.<name>`` is called while the increment of a block on
+    an incline is traced and lowered afresh."""
+    calls = []
+    fn = getattr(substep, name)
 
     def counted(*args):
-        traced.append(1)
-        return prepare(*args)
+        calls.append(1)
+        return fn(*args)
 
-    monkeypatch.setattr(substep, "prepare_substep", counted)
+    monkeypatch.setattr(substep, name, counted)
     jax.clear_caches()
     scene = parse_scene(block_on_incline(30.0, 35.0))
     model, state, layout = model_mod.build(scene)
     data = solver.scene_data(scene, layout)
     loads, _ = solver._Driver(model, state, layout, data, None).loads(data.weight + data.traction)
     increment.lower(model, state, loads)
-    assert len(traced) == 1
+    return len(calls)
+
+
+def test_the_increment_traces_its_sub_step_once(monkeypatch):
+    """The loop's carry shapes and its body share one trace of the sub-step (a second trace
+    cost 0.1-0.2 s of every cold run)."""
+    assert _calls_in_trace(monkeypatch, "prepare_substep") == 1
 
 
 def test_the_newton_iteration_traces_its_body_once(monkeypatch):
@@ -139,21 +145,7 @@ def test_the_newton_iteration_traces_its_body_once(monkeypatch):
     iteration, its line search and the sub-step's final evaluation. JAX traced the
     iteration's body a second time when a weakly typed counter of its carry came back
     int32 (0.3 s of every cold run), and the line search had two evaluations."""
-    calls = []
-    evaluate = substep.evaluate
-
-    def counted(*args):
-        calls.append(1)
-        return evaluate(*args)
-
-    monkeypatch.setattr(substep, "evaluate", counted)
-    jax.clear_caches()
-    scene = parse_scene(block_on_incline(30.0, 35.0))
-    model, state, layout = model_mod.build(scene)
-    data = solver.scene_data(scene, layout)
-    loads, _ = solver._Driver(model, state, layout, data, None).loads(data.weight + data.traction)
-    increment.lower(model, state, loads)
-    assert len(calls) == 3
+    assert _calls_in_trace(monkeypatch, "evaluate") == 3
 
 
 def test_programs_are_compiled_without_source_locations():

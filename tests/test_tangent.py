@@ -22,11 +22,9 @@ from jaxdem.core.state import SLIP, STICK
 from jaxdem.scene import parse_scene
 
 
-def test_slip_tangent_is_the_derivative_of_the_residual_in_held_states():
-    """K v against the central difference of -R along v (relative 1e-6), on the jointed
-    tunnel's first sub-step moved so that joints slip, every slot held in the law's
-    state, with a hysteresis band wide enough that some stuck slots are beyond their
-    strength within it (their force is their trial force: no coupling)."""
+def _moved_tunnel():
+    """The jointed tunnel's first sub-step and a random move that makes joints slip: (mdl,
+    sub, st0, du, the random generator after drawing du, the largest block radius)."""
     model, state, _ = model_mod.build(parse_scene(jointed_tunnel(water=False, bolts=False)))
     loads = make_loads(model, model.f_ext)
     mdl, sub, st0, _, _ = prepare_substep(model, state, loads)
@@ -34,6 +32,15 @@ def test_slip_tangent_is_the_derivative_of_the_residual_in_held_states():
     free = np.asarray(sub.free)[:, None]
     size = float(np.max(np.asarray(model.radius)))
     du = jnp.asarray(rng.normal(0.0, 2e-4 * size, (mdl.n_blocks, mdl.ndof)) * free)
+    return mdl, sub, st0, du, rng, size
+
+
+def test_slip_tangent_is_the_derivative_of_the_residual_in_held_states():
+    """K v against the central difference of -R along v (relative 1e-6), on the jointed
+    tunnel's first sub-step moved so that joints slip, every slot held in the law's
+    state, with a hysteresis band wide enough that some stuck slots are beyond their
+    strength within it (their force is their trial force: no coupling)."""
+    mdl, sub, st0, du, rng, size = _moved_tunnel()
     none = jnp.zeros_like(st0, bool)
     # A band of about the median excess over the strength of the slots that slip
     # without one: about half of them stay stuck within it.
@@ -66,13 +73,7 @@ def test_exact_tangent_of_slots_held_stuck_beyond_their_strength():
     (:func:`jaxdem.core.laws.forces_in_state`): with ``exact`` their shear spring goes and
     K v is the central difference of -R (relative 1e-6); without it (the stiffness the
     Newton iteration uses until a tried step fails) it is not."""
-    model, state, _ = model_mod.build(parse_scene(jointed_tunnel(water=False, bolts=False)))
-    loads = make_loads(model, model.f_ext)
-    mdl, sub, st0, _, _ = prepare_substep(model, state, loads)
-    rng = np.random.default_rng(3)
-    free = np.asarray(sub.free)[:, None]
-    size = float(np.max(np.asarray(model.radius)))
-    du = jnp.asarray(rng.normal(0.0, 2e-4 * size, (mdl.n_blocks, mdl.ndof)) * free)
+    mdl, sub, st0, du, rng, size = _moved_tunnel()
     none = jnp.zeros_like(st0, bool)
     law = evaluate(mdl, sub, du, none, none.astype(st0.dtype), st0, 0.0)
     active = np.asarray(sub.geo["active"])
