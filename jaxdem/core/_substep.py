@@ -397,8 +397,8 @@ def _newton(model: Model, sub: Sub, st0):
                        tangent=tangent, untried=untried, lost=lost, flat=flat, fails=fails)
 
     inf = jnp.array(jnp.inf, dtype)
-    # Counters int32 like the flips (not the weakly typed jnp.array(0), whose sum with
-    # them is int32: JAX then traced the body twice, 0.3 s of every compilation).
+    # Counters int32 (a weakly typed jnp.array(0) plus an int32, as ``fails`` gets, comes
+    # back int32, and JAX then traced the body a second time: 0.3 s of every compilation).
     zero = jnp.zeros((), jnp.int32)
     init = Iterate(du=jnp.zeros((N, model.ndof), dtype), st=st0, flips=zeros_s,
                    frozen=jnp.zeros(S, bool), frozen_state=zeros_s, it=zero,
