@@ -182,10 +182,10 @@ def _program_dir() -> Path | None:
 
 
 def _disk_key(name, tree, leaves, static, options) -> str:
-    device = jax.devices()[0]
-    from jax._src.lib import version as jaxlib_version
+    import jaxlib
 
-    parts = (name, _source_digest(), jax.__version__, str(jaxlib_version), device.platform,
+    device = jax.devices()[0]
+    parts = (name, _source_digest(), jax.__version__, jaxlib.__version__, device.platform,
              device.device_kind, _processor(), bool(jax.config.jax_enable_x64), str(tree),
              tuple((tuple(x.shape), str(x.dtype)) for x in leaves),
              tuple(sorted(static.items())), tuple(sorted(options.items())))
