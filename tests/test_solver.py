@@ -210,15 +210,20 @@ def test_scenes_of_one_size_class_share_their_compiled_increment(monkeypatch):
 
 def test_seed_example4_newton_iterations_stay_down():
     """Seed example 4 (wet slope over a tunnel, 225 blocks, 12 increments): the Newton
-    iterations a guard keeps from creeping back. Measured 379 in all, 65 in the worst
-    increment, median 23.5, since the tries of the slip tangent after a failed one drop
-    the shear spring of slots held stuck beyond their strength (406 and 84 before; 410
+    iterations a guard keeps from creeping back, and issue 30's "at most 60 an
+    increment, median at most 20". Measured 311 in all, 48 in the worst increment,
+    median 19.5, since a sub-step after converged ones tries the slip tangent from its
+    second iteration (353, 50, 23.5 before); 353 and 50 since a secant that swings
+    between two iterates with the states held counts as a stall (its step damped by the
+    line search; 379 and 65 before); 379 and 65 since the tries of
+    the slip tangent after a failed one drop the shear spring of slots held stuck beyond
+    their strength (406 and 84 before; 410
     and 86 before faces that meet end to end at a node lost their spring; 440 and 96
     before a failed try of the slip tangent was tried again; 718 and 310 before a flat
     stall's failed tangent step was followed as a mechanism; 1,408 and 647 before the
-    stall's tangent took the slip coupling). Issue 30 asks for at most 60 an increment
-    and a median of 20 (not yet: the loading's seating of blocks on the slope takes 57
-    and 65, most of it slots that cycle through their states until they freeze)."""
+    stall's tangent took the slip coupling). The worst increments are the loading's
+    seating of blocks on the slope (39-48 each), most of it slots that cycle through
+    their states until they freeze."""
     from pathlib import Path
 
     scene = jaxdem.load_scene(Path(__file__).parents[1] / "examples"
@@ -226,8 +231,8 @@ def test_seed_example4_newton_iterations_stay_down():
     result = jaxdem.solve(scene)
     its = [i for stage in result.stages for i in stage["iterations"]]
     assert result.converged and len(its) == 12
-    assert sum(its) <= 390 and max(its) <= 68, its
-    assert sorted(its)[len(its) // 2] <= 25, its
+    assert sum(its) <= 320 and max(its) <= 60, its
+    assert np.median(its) <= 20, its
 
 
 def test_a_preload_whose_detection_overflows_grows_it_and_gives_the_same_answer():

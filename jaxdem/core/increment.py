@@ -145,12 +145,14 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
     zeros_like = lambda t: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), t)  # noqa: E731
 
     def body(c: Progress) -> Progress:
+        # A sub-step after converged ones only corrects for the geometry they moved.
+        warm = (c.substeps > 0) & ~c.approximate
         if tangents is None:
-            st_new, du, newton, need, balance, snap = _substep_once(model, c.state, loads)
+            st_new, du, newton, need, balance, snap = _substep_once(model, c.state, loads, warm)
             dstate = dsnap = None
         else:
             (st_new, du, newton, need, balance, snap), (dstate, dsnap) = substep_tangent(
-                model, c.state, loads, tangents["model"], c.dstate, tangents["loads"])
+                model, c.state, loads, tangents["model"], c.dstate, tangents["loads"], warm=warm)
         overflow = ((need["pairs"] > state.capacity) | need["cell_full"] | need["slots_full"]
                     | (need["touching"] > model.touch_capacity))
         travel = c.travel + block_travel(model, du)

@@ -222,12 +222,12 @@ def floats_of(sub: Sub) -> list:
 
 
 def substep_tangent(model: Model, state: State, loads: Loads, dmodel, dstate, dloads,
-                    active_share: int = ACTIVE_SHARE):
+                    active_share: int = ACTIVE_SHARE, warm=False):
     """:func:`jaxdem.core._substep.substep` and the derivatives of its new state and snapshot.
 
     Returns (the outputs of :func:`jaxdem.core._substep.substep`, (dstate, dsnapshot)); see
     :func:`jaxdem.core.increment.increment_tangent`. ``active_share``: see
-    :func:`_sub_tangents`.
+    :func:`_sub_tangents`; ``warm``: see :func:`jaxdem.core._substep._newton`.
     """
     mf0, sf0, lf0 = (_fields(model, SMOOTH_MODEL), _fields(state, STATE_FLOATS),
                      _fields(loads, LOAD_FLOATS))
@@ -237,7 +237,7 @@ def substep_tangent(model: Model, state: State, loads: Loads, dmodel, dstate, dl
     # on the primal; the derivatives of its data are those of the active slots
     # alone (:func:`_sub_tangents`).
     mdl, sub, st0, pairs, need = prepare_substep(model, state, loads)
-    forward = newton_and_commit(mdl, state, sub, st0, pairs, need)
+    forward = newton_and_commit(mdl, state, sub, st0, pairs, need, warm)
     new_state, du, converged = forward[0], forward[1], forward[2].converged
     held = new_state.cstate.reshape(-1)
     all_held = jnp.ones(held.shape, bool)
