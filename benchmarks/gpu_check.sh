@@ -4,6 +4,7 @@
 # under $OUT.
 #
 #   bash benchmarks/gpu_check.sh        # from the repository root; PYTHONPATH is set here
+#   FLOAT32=0 DEADLINE=300 bash benchmarks/gpu_check.sh   # float64 and the sweep only
 #
 # What it runs, float64 and float32 (solver.dtype), each a whole `jaxdem` command:
 #   - `jaxdem demo` (cold, then warm: the program store in a cache folder of its own);
@@ -86,6 +87,8 @@ if [ "$limit" -ge 5 ]; then
   timeout "$limit" python3 benchmarks/bench_throughput.py --spacings 7.0 --samples 1024 --loop 16 \
     --repeats 1 2>&1 | tee "$OUT/throughput.txt"
 fi
-run demo-float32 60 run "$WORK/demo-float32.toml"
-run ex2-float32 90 run "$WORK/ex2-float32.toml"
-run grid100-float32 120 run "$WORK/grid100-float32.toml"
+if [ "${FLOAT32:-1}" = 1 ]; then  # FLOAT32=0: the float64 cases and the sweep alone
+  run demo-float32 60 run "$WORK/demo-float32.toml"
+  run ex2-float32 90 run "$WORK/ex2-float32.toml"
+  run grid100-float32 120 run "$WORK/grid100-float32.toml"
+fi

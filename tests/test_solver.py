@@ -211,8 +211,8 @@ def test_scenes_of_one_size_class_share_their_compiled_increment(monkeypatch):
 def test_seed_example4_newton_iterations_stay_down():
     """Seed example 4 (wet slope over a tunnel, 225 blocks, 12 increments): the Newton
     iterations a guard keeps from creeping back, and issue 30's "at most 60 an
-    increment, median at most 20". Measured 311 in all, 48 in the worst increment,
-    median 19.5, since a sub-step after converged ones tries the slip tangent from its
+    increment, median at most 20". Measured 309 in all, 48 in the worst increment,
+    median 19.5, since a sub-step after a balanced one tries the slip tangent from its
     second iteration (353, 50, 23.5 before); 353 and 50 since a secant that swings
     between two iterates with the states held counts as a stall (its step damped by the
     line search; 379 and 65 before); 379 and 65 since the tries of
