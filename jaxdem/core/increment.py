@@ -140,8 +140,10 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
     N = model.n_blocks
     dtype = state.verts.dtype
     # The shapes of the balance and snapshot carried by the loop. ``substep`` is
-    # jitted so that this trace is the one the loop body uses, not a second one.
-    _, _, _, _, balance0, snap0 = jax.eval_shape(_substep_once, model, state, loads)
+    # jitted so that this trace is the one the loop body uses, not a second one: with
+    # the body's abstract arguments (``warm`` a traced bool, as the body makes it).
+    _, _, _, _, balance0, snap0 = jax.eval_shape(_substep_once, model, state, loads,
+                                                 jnp.zeros((), bool))
     zeros_like = lambda t: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), t)  # noqa: E731
 
     def body(c: Progress) -> Progress:
