@@ -296,7 +296,7 @@ def _newton(model: Model, sub: Sub, st0, warm=False):
         # gives the newly detected slots their states), while a few slots still change
         # state, until a try fails; then as any sub-step. The secant crawled there
         # (0.75 an iteration) for 6-10 iterations, its slots flipping one or two at a
-        # time, before the states held still twice: seed example 4 wet 353 -> 311
+        # time, before the states held still twice: seed example 4 wet 353 -> 309
         # iterations (median 23.5 -> 19.5 an increment), the demo 67 -> 51, seed
         # example 2 77 -> 64, the staged tunnel 279 -> 208 (its worst increment 114 ->
         # 94: warm after any balanced sub-step, not only where all before it were),

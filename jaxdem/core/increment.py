@@ -147,7 +147,7 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
     zeros_like = lambda t: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), t)  # noqa: E731
 
     def body(c: Progress) -> Progress:
-        # A sub-step after one that converged only corrects for the geometry it moved.
+        # A sub-step after a balanced one only corrects for the geometry that one moved.
         warm = (c.substeps > 0) & (c.residual <= model.tol)
         if tangents is None:
             st_new, du, newton, need, balance, snap = _substep_once(model, c.state, loads, warm)
