@@ -215,15 +215,14 @@ def test_seed_example4_newton_iterations_stay_down():
     median 19.5, since a sub-step after a balanced one tries the slip tangent from its
     second iteration (353, 50, 23.5 before); 353 and 50 since a secant that swings
     between two iterates with the states held counts as a stall (its step damped by the
-    line search; 379 and 65 before); 379 and 65 since the tries of
-    the slip tangent after a failed one drop the shear spring of slots held stuck beyond
-    their strength (406 and 84 before; 410
-    and 86 before faces that meet end to end at a node lost their spring; 440 and 96
-    before a failed try of the slip tangent was tried again; 718 and 310 before a flat
-    stall's failed tangent step was followed as a mechanism; 1,408 and 647 before the
-    stall's tangent took the slip coupling). The worst increments are the loading's
-    seating of blocks on the slope (39-48 each), most of it slots that cycle through
-    their states until they freeze."""
+    line search; 379 and 65 before); 379 and 65 since the tries of the slip tangent
+    after a failed one drop the shear spring of slots held stuck beyond their strength
+    (406 and 84 before; 410 and 86 before faces that meet end to end at a node lost
+    their spring; 440 and 96 before a failed try of the slip tangent was tried again;
+    718 and 310 before a flat stall's failed tangent step was followed as a mechanism;
+    1,408 and 647 before the stall's tangent took the slip coupling). The worst
+    increments are the loading's seating of blocks on the slope (39-48 each), most of it
+    slots that cycle through their states until they freeze."""
     from pathlib import Path
 
     scene = jaxdem.load_scene(Path(__file__).parents[1] / "examples"
