@@ -20,7 +20,7 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from jaxdem.core.kinematics import bolt_length_after, gather_pairs, scatter_pairs
+from jaxdem.core.kinematics import bolt_length_derivatives, gather_pairs, scatter_pairs
 from jaxdem.core.laws import forces_in_state, mohr_coulomb
 from jaxdem.core.state import OPEN, SLIP, STICK, Model
 
@@ -88,9 +88,7 @@ def _bolt_kinematics(model: Model, sub: Sub, du):
     mask = jnp.concatenate([jnp.repeat(bolt["free_a"][:, None], D, 1),
                             jnp.repeat(bolt["free_b"][:, None], D, 1)], 1).astype(du.dtype)
     x = gather_pairs(du, bolt["a"], bolt["b"]) * mask
-    length = functools.partial(bolt_length_after, D)
-    L, g = jax.vmap(jax.value_and_grad(length, argnums=3))(bolt["d0"], bolt["ra"], bolt["rb"], x)
-    H = jax.vmap(jax.hessian(length, argnums=3))(bolt["d0"], bolt["ra"], bolt["rb"], x)
+    L, g, H = bolt_length_derivatives(D, bolt["d0"], bolt["ra"], bolt["rb"], x)
     return L, g * mask, H * mask[:, :, None] * mask[:, None, :]
 
 

@@ -4,7 +4,7 @@ Owns the maps from a block's generalised displacement (ux, uy, theta[, eps_x,
 eps_y, gamma_xy]) to the motion of its points: :func:`point_row` and
 :func:`b_rows` (the rows of B), :func:`strain_times`, :func:`rotate_vectors`,
 :func:`move_blocks` (the exact motion of a whole increment), :func:`bolt_geometry`
-and :func:`bolt_length_after` (bolt anchors), :func:`block_travel`, and the gather and
+and :func:`bolt_length_derivatives` (bolt anchors), :func:`block_travel`, and the gather and
 scatter between slots and blocks. Pure jax.numpy on fixed shapes; no laws.
 
 Data flow: takes the device pytrees of :mod:`jaxdem.core.state`; used by the spring
@@ -132,26 +132,72 @@ def bolt_geometry(model: Model, state: State):
     return dict(a=j, b=i, point_a=p2, point_b=p1, e=e)
 
 
-def bolt_length_after(ndof, d0, ra, rb, x):
-    """Current anchor-to-anchor length of one bolt after the move x = (du_a, du_b) (m).
+def _perp(v):
+    """v turned by +90 degrees: the derivative of R(theta) v in theta is R(theta) perp(v)."""
+    return jnp.stack([-v[..., 1], v[..., 0]], -1)
 
-    ``d0`` = anchor a - anchor b at the sub-step's geometry, ``ra``, ``rb`` the anchors
-    from their blocks' centroids. Exact rigid motion (rotation by du[2], and for a
-    deformable block its strain first), as :func:`move_blocks` applies it: the bolt's force
-    comes from its actual elongation at any displacement, not from a sum of
-    linearised increments.
+
+def _anchor_motion(ndof, u, r):
+    """An anchor's move and its first and second derivatives in its block's u.
+
+    The anchor at r from the centroid moves by m(u) = (ux, uy) + R(theta) r' - r,
+    r' = r + E(eps) r for a deformable block (strained, then turned: as
+    :func:`move_blocks` moves it). Returns m (..., 2), J = dm/du (..., 2, D) and
+    the one non-zero row and column of d2m/du2: d2m/dtheta2 = -R r' (..., 2) and
+    d2m/(dtheta deps_k) = R perp(S_k r) (..., 2, D - 3); m is linear in the rest.
     """
-    def moved(u, r):
-        if ndof == 6:
-            r_new = r + strain_times(u[3:], r)
-        else:
-            r_new = r
-        return u[:2] + rotate_vectors(r_new, u[2]) - r
+    angle = u[..., 2]
+    if ndof == 6:
+        # d(E r)/d(eps_x, eps_y, gamma_xy): (r_x, 0), (0, r_y), (r_y, r_x) / 2.
+        zero = jnp.zeros_like(r[..., 0])
+        dE = jnp.stack([jnp.stack([r[..., 0], zero], -1), jnp.stack([zero, r[..., 1]], -1),
+                        0.5 * jnp.stack([r[..., 1], r[..., 0]], -1)], -1)  # (..., 2, 3)
+        arm = r + strain_times(u[..., 3:], r)
+    else:
+        arm = r
+    q = rotate_vectors(arm, angle)  # R r'
+    eye = jnp.broadcast_to(jnp.eye(2, dtype=r.dtype), q.shape[:-1] + (2, 2))
+    cols = [eye, _perp(q)[..., None]]
+    cross_terms = None
+    if ndof == 6:
+        turned = jnp.swapaxes(rotate_vectors(jnp.swapaxes(dE, -1, -2), angle[..., None]), -1, -2)
+        cols.append(turned)
+        cross_terms = jnp.swapaxes(_perp(jnp.swapaxes(turned, -1, -2)), -1, -2)
+    return u[..., :2] + q - r, jnp.concatenate(cols, -1), -q, cross_terms
 
-    d = d0 + moved(x[:ndof], ra) - moved(x[ndof:], rb)
+
+def bolt_length_derivatives(ndof, d0, ra, rb, x):
+    """Anchor-to-anchor length of each bolt after the move x = (du_a, du_b), with its
+    gradient and Hessian in x, in closed form: L (B,), g (B, 2 D), H (B, 2 D, 2 D).
+
+    ``d0`` (B, 2) = anchor a - anchor b at the sub-step's geometry, ``ra``, ``rb``
+    the anchors from their blocks' centroids. Exact rigid motion (and strain), as
+    :func:`move_blocks` applies it: the bolt's force comes from its actual
+    elongation at any displacement, not from a sum of linearised increments. With
+    d = d0 + m_a - m_b, n = d / L and J = dd/dx: g = J^T n and
+    H = (J^T J - g g^T) / L + sum_c n_c d2d_c/dx2 (the string stiffness across the
+    bolt's line and the lever-arm terms of its anchors' rotations).
+    """
+    D = ndof
+    m_a, J_a, tt_a, te_a = _anchor_motion(ndof, x[:, :D], ra)
+    m_b, J_b, tt_b, te_b = _anchor_motion(ndof, x[:, D:], rb)
+    d = d0 + m_a - m_b
     # The anchors are distinct (the scene refuses a bolt of zero length); the floor
-    # only keeps sqrt's derivative finite.
-    return jnp.sqrt(jnp.maximum(jnp.sum(d * d), jnp.finfo(d.dtype).tiny))
+    # only keeps the division finite.
+    L = jnp.sqrt(jnp.maximum(jnp.sum(d * d, -1), jnp.finfo(d.dtype).tiny))
+    n = d / L[:, None]
+    J = jnp.concatenate([J_a, -J_b], -1)  # (B, 2, 2 D)
+    g = jnp.einsum("bc,bcj->bj", n, J)
+    H = (jnp.einsum("bci,bcj->bij", J, J) - g[:, :, None] * g[:, None, :]) / L[:, None, None]
+    # n . d2d/dx2: theta-theta of each block, and theta-strain of a deformable one.
+    for side, tt, te in ((0, tt_a, te_a), (1, tt_b, te_b)):
+        sign = 1.0 - 2.0 * side
+        th = side * D + 2
+        H = H.at[:, th, th].add(sign * jnp.sum(n * tt, -1))
+        if te is not None:
+            w = sign * jnp.einsum("bc,bck->bk", n, te)
+            H = H.at[:, th, th + 1:th + 4].add(w).at[:, th + 1:th + 4, th].add(w)
+    return L, g, H
 
 
 def block_travel(model: Model, du):
