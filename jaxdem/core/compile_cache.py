@@ -86,11 +86,16 @@ optimisation level 0. It compiles the increment in 0.4-0.6 of the time and runs 
 takes less than the compilation saves: a single solve of a small scene, or a small
 batch."""
 
-QUICK_WORK = 2_000
+QUICK_WORK = 2_560
 """Largest work (blocks of the size class x increments, x samples for a batch) of a
-solve compiled ``quick``: the 20 x 20 grid (448 blocks, one increment) is below, the
-demo (487 blocks, five increments, 2 s of solve at full optimisation, 6 s at level 0)
-above. A solve with sensitivities, one of many in a back-analysis, is never quick."""
+solve compiled ``quick``: the demo (512 x 5 increments) and the dry seed example 4
+(256 x 8) are within, the wet one (256 x 12) and seed example 2 (1,280 x 5) above. At
+LLVM's level 0 the demo's cold run took 4.8-5.0 s against 6.8 (compile 3.1-3.3 s against
+5.3-5.4) and its warm run 1.95 against 1.46 (a solve of 0.6-0.75 s against 0.30); the
+wet seed example 4 would have taken 5.3 cold but 2.5 warm (solve 1.5 s against 0.46:
+it iterates more an increment), so it stays at full optimisation (BENCHMARKS.md,
+"Thirteenth session"). A solve with sensitivities, one of many in a back-analysis, is
+never quick."""
 
 
 def _options(quick: bool = False) -> dict:
