@@ -539,8 +539,9 @@ class _Driver:
         loads, dloads = self.loads(base)
         while True:
             if self.dstate is None:
+                # Run once a solve: compiled quick, whatever the increment.
                 pre, dt = compiled_program(in_situ_preload, self.model, self.state, loads, *args,
-                                           mode=mode, quick=self.quick)
+                                           mode=mode, quick=True)
                 self.compile_s += dt
                 st, overflow = pre(self.model, self.state, loads, *args)
             else:
