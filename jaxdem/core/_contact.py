@@ -284,13 +284,26 @@ def _slot_finish(model: Model, g, halved, X, Y, widths):
                 h_b=jnp.maximum(g["h_y"], 0.1 * jnp.minimum(model.radius[Y], widths[Y])))
 
 
-def _vertex_edge(model: Model, xv, nvx, vmx, cx, ex, ey, cy, width):
+#: How far (a fraction of the smaller block's step length) a corner may pass into another
+#: block at a node where it has no spring before the step is cut
+#: (:func:`jaxdem.core._substep.corner_bound`); one half as far in, it has a spring.
+CORNER_PASS = 0.1
+
+
+def block_steps(model: Model):
+    """The farthest each block (N,) may travel in one sub-step (m): ``step_length``, and a
+    small block at most a quarter of its radius."""
+    return jnp.minimum(model.step_length, 0.25 * model.radius)
+
+
+def _vertex_edge(model: Model, xv, nvx, vmx, cx, ex, ey, cy, width, entered):
     """Slots of the vertices of block X against the edges of block Y, per pair.
 
     Args:
       xv: (P, V, 2) vertices of X; nvx: (P,) counts; vmx: (P, V) mask.
       cx, cy: (P, 2) centroids. ex, ey: edges of X and of Y (output of :func:`edges`).
       width: (P,) Y's least width (:func:`block_widths`).
+      entered: (P,) depth (m) inside Y past which a vertex at a node has a spring.
     Returns a dict of (P, V) arrays: active, gap (m, negative = overlap), point,
     normal and tangent of the contacted face, edge index, share (m), h_x, h_y (m),
     own_edge (X's face anti-parallel to it, or -1), far_gap and far_point; watch,
@@ -382,7 +395,14 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ex, ey, cy, width):
     # other face's line, not to the node.
     s_v = _dot(sg(xv) - sg(q), sg(t))
     crossed = on & (take(d) < dmax - model.touch_tol)
-    inside = ((s_v > model.span_tol) & (s_v < L_e - model.span_tol)) | crossed
+    # A corner that came to a node of Y where it had no spring (corner to corner) and
+    # went on into Y, ``entered`` deep (half of :data:`CORNER_PASS` of a step length)
+    # behind all of Y's faces, bears on the face it went in through, the least
+    # penetrated, however near the node: the step was cut there for the next detection
+    # to give it this spring (:func:`jaxdem.core._substep.corner_bound`). Without it
+    # such a corner stayed at the node, each step cut at once.
+    inside = (((s_v > model.span_tol) & (s_v < L_e - model.span_tol)) | crossed
+              | (dmax <= -entered[:, None]))
     g = _slot_geometry(model, xv, _take(xv, nxt[..., None], axis=1),
                        _take(xv, prev[..., None], axis=1), cx[:, None, :], cy[:, None, :], q, n,
                        t, L_e, lx, l_in, po, pi, inside)
@@ -423,9 +443,11 @@ def _pair_slots(model: Model, verts, nv, vmask, e_all, widths, centroid, pairs):
     # vertex-face tests in the program, not two (a program's size is its time to compile
     # and to load).
     both = lambda x, y: jnp.concatenate([x, y])  # noqa: E731
+    step = block_steps(model)
+    entered = 0.5 * CORNER_PASS * jnp.minimum(step[a], step[b])
     s = _vertex_edge(model, both(va, vb), both(nva, nvb), both(vma, vmb), both(ca, cb),
                      tuple(map(both, ea, eb)), tuple(map(both, eb, ea)), both(cb, ca),
-                     both(widths[b], widths[a]))
+                     both(widths[b], widths[a]), both(entered, entered))
     s0, s1 = ({k: x[:P] for k, x in s.items()}, {k: x[P:] for k, x in s.items()})
     # A vertex of b at a contact point of a vertex of a (within that point's
     # overlap) is the same contact point, seen from both sides: each side's slot

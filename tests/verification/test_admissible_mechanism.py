@@ -284,6 +284,54 @@ def test_every_substep_of_the_fall_keeps_the_corner_out():
     assert deepest <= CORNER_PASS * step * np.sqrt(2.0)
 
 
+def _apex_on_roof(gap=0.02):
+    """A free diamond (half-diagonal 1 m) above the apex of a fixed low roof whose two
+    faces slope down at 15 degrees (an interior angle of 150 degrees at its apex)."""
+    slope = np.tan(np.radians(15.0))
+    roof = [[0.0, 0.0], [-2.0, -2.0 * slope], [-2.0, -3.0], [2.0, -3.0], [2.0, -2.0 * slope]]
+    diamond = [[0.0, gap], [1.0, 1.0 + gap], [0.0, 2.0 + gap], [-1.0, 1.0 + gap]]
+    scene = parse_scene({
+        "scene": {"name": "apex on a roof"},
+        "materials": {"rock": dict(ROCK)},
+        "joints": {"j": {"kn": 1e6, "ks": 1e6, "friction_deg": 30.0}},
+        "blocks": [{"vertices": roof, "material": "rock", "fixed": True},
+                   {"vertices": diamond, "material": "rock"}],
+    })
+    model, state, _ = model_mod.build(scene)
+    return model, state
+
+
+def test_a_corner_that_passed_into_an_obtuse_node_gets_its_spring():
+    """At a node of 150 degrees the region behind both faces is a wide wedge: a corner
+    cut CORNER_PASS of a step behind both lies 0.27 of that from the node along either
+    face, within the face's end tolerance, where a corner bears on nothing. It then had
+    no spring and no step either: each sub-step was cut at once, with no motion
+    (seed example 4 at 32.67 degrees: 206 such sub-steps of a crest sliver, to the
+    iteration limit). Behind all of the roof's faces by half the pass, it bears on the
+    face it went in through."""
+    from jaxdem.core._substep import CORNER_PASS
+
+    model, state = _apex_on_roof()
+    new, _, newton, _, _, _ = _one_substep(model, state)
+    assert bool(newton.clipped) and not bool(newton.converged)
+    pairs, _, _ = broad_phase(model, new.verts, new.capacity, new.alive)
+    geo = narrow_phase(model, new.verts, new.centroid, pairs)
+    apex = np.asarray(new.verts)[1, 0]
+    point = np.asarray(geo["point"])
+    at_apex = np.linalg.norm(point - apex, axis=1) < 1e-9
+    assert np.any(np.asarray(geo["active"]) & at_apex & (np.asarray(geo["a"]) == 1))
+    # With that spring the next sub-steps move it (it stands on a point, and tips off
+    # the apex), where every step had been cut at once; and no point of it goes deeper
+    # into the roof than the pass (plus its spring's compression, under a millimetre).
+    step = float(model.step_length)
+    start = np.asarray(new.centroid)[1].copy()
+    for _ in range(6):
+        new, _, _, _, _, _ = _one_substep(model, new)
+        v = np.asarray(new.verts)
+        assert _sat_depth(v[0, :5], v[1, :4]) <= CORNER_PASS * step + 1e-3
+    assert np.linalg.norm(np.asarray(new.centroid)[1] - start) > 0.1 * step
+
+
 # ---------------------------------------------------------------------------
 # A mechanism that is reported moves: where it went, not back and forth.
 #
