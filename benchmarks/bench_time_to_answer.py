@@ -48,6 +48,11 @@ Problems (scene files written to ``benchmarks/scenes/`` by this script):
   no closed form).
 - ex4wet, ex2: seed examples 4 (wet slope and tunnel, 225 blocks) and 2 (tunnel and
   shear zone, 1,193 blocks) as shipped in examples/ (no closed form).
+- ex3, ex3d: seed example 3 (two tunnels in meshed rock, 1,292 and 1,282 blocks), without
+  and with the discontinuity D, at ``in_situ.k0`` = 1/3 (written to benchmarks/scenes/):
+  as shipped (K0 = 0) the rock fails under its own weight and the initial state ends at
+  the iteration limit after minutes (the scene's warning; examples/README.md). No closed
+  form: the error column gives the status of a run that found no equilibrium.
 
 Reference: Shi's DDA (the public ntdda C code) on the same machine kind,
 solve only: incline 0.005 s, 10 x 10 0.17 s, 20 x 20 1.74 s (issue 18), 40 x 40 5.95 s,
@@ -185,6 +190,17 @@ def write_scenes() -> dict[str, Path]:
     # The seed examples as shipped (examples/README.md): no closed form.
     for name, file in EXAMPLES.items():
         paths[name] = HERE.parent / "examples" / file
+    # Seed example 3 at k0 = 1/3 (its file's K0 = 0 fails before any excavation).
+    for name, file in (("ex3", "seed_example3_without_D.toml"),
+                       ("ex3d", "seed_example3_with_D.toml")):
+        shipped = (HERE.parent / "examples" / file).read_text()
+        assert "\nk0 = 0.0\n" in shipped, f"{file}: its in_situ.k0 line has changed"
+        text = (f"# Written by benchmarks/bench_time_to_answer.py ({name}): examples/{file}"
+                " at k0 = 1/3.\n" + shipped.replace("\nk0 = 0.0\n", "\nk0 = 0.3333\n", 1))
+        path = SCENES / f"{name}.toml"
+        if not path.exists() or path.read_text() != text:
+            path.write_text(text)
+        paths[name] = path
     return paths
 
 
