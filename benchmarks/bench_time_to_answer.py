@@ -180,27 +180,25 @@ def write_scenes() -> dict[str, Path]:
               # The "similar" scenes: other block counts in the same size classes.
               "incline-similar": incline_scene(stacked=True),
               "grid10-similar": grid_scene(11, 9), "grid20-similar": grid_scene(21, 19)}
+    texts = {name: f"# Written by benchmarks/bench_time_to_answer.py ({name}).\n" + to_toml(d)
+             for name, d in scenes.items()}
+    # Seed example 3 at k0 = 1/3 (its file's K0 = 0 fails before any excavation).
+    for name, file in (("ex3", "seed_example3_without_D.toml"),
+                       ("ex3d", "seed_example3_with_D.toml")):
+        shipped = (HERE.parent / "examples" / file).read_text()
+        assert "\nk0 = 0.0\n" in shipped, f"{file}: its in_situ.k0 line has changed"
+        texts[name] = (f"# Written by benchmarks/bench_time_to_answer.py ({name}): examples/"
+                       f"{file} at k0 = 1/3.\n"
+                       + shipped.replace("\nk0 = 0.0\n", "\nk0 = 0.3333\n", 1))
     paths = {}
-    for name, d in scenes.items():
+    for name, text in texts.items():
         path = SCENES / f"{name}.toml"
-        text = f"# Written by benchmarks/bench_time_to_answer.py ({name}).\n" + to_toml(d)
         if not path.exists() or path.read_text() != text:
             path.write_text(text)
         paths[name] = path
     # The seed examples as shipped (examples/README.md): no closed form.
     for name, file in EXAMPLES.items():
         paths[name] = HERE.parent / "examples" / file
-    # Seed example 3 at k0 = 1/3 (its file's K0 = 0 fails before any excavation).
-    for name, file in (("ex3", "seed_example3_without_D.toml"),
-                       ("ex3d", "seed_example3_with_D.toml")):
-        shipped = (HERE.parent / "examples" / file).read_text()
-        assert "\nk0 = 0.0\n" in shipped, f"{file}: its in_situ.k0 line has changed"
-        text = (f"# Written by benchmarks/bench_time_to_answer.py ({name}): examples/{file}"
-                " at k0 = 1/3.\n" + shipped.replace("\nk0 = 0.0\n", "\nk0 = 0.3333\n", 1))
-        path = SCENES / f"{name}.toml"
-        if not path.exists() or path.read_text() != text:
-            path.write_text(text)
-        paths[name] = path
     return paths
 
 

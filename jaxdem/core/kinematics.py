@@ -147,22 +147,17 @@ def _anchor_motion(ndof, u, r):
     d2m/(dtheta deps_k) = R perp(S_k r) (..., 2, D - 3); m is linear in the rest.
     """
     angle = u[..., 2]
-    if ndof == 6:
-        # d(E r)/d(eps_x, eps_y, gamma_xy): (r_x, 0), (0, r_y), (r_y, r_x) / 2.
-        zero = jnp.zeros_like(r[..., 0])
-        dE = jnp.stack([jnp.stack([r[..., 0], zero], -1), jnp.stack([zero, r[..., 1]], -1),
-                        0.5 * jnp.stack([r[..., 1], r[..., 0]], -1)], -1)  # (..., 2, 3)
-        arm = r + strain_times(u[..., 3:], r)
-    else:
-        arm = r
+    arm = r + strain_times(u[..., 3:], r) if ndof == 6 else r
     q = rotate_vectors(arm, angle)  # R r'
     eye = jnp.broadcast_to(jnp.eye(2, dtype=r.dtype), q.shape[:-1] + (2, 2))
     cols = [eye, _perp(q)[..., None]]
     cross_terms = None
     if ndof == 6:
-        turned = jnp.swapaxes(rotate_vectors(jnp.swapaxes(dE, -1, -2), angle[..., None]), -1, -2)
-        cols.append(turned)
-        cross_terms = jnp.swapaxes(_perp(jnp.swapaxes(turned, -1, -2)), -1, -2)
+        # R S_k r (..., 3, 2): E r is linear in the strains, S_k r is it at a unit strain k.
+        turned = rotate_vectors(strain_times(jnp.eye(3, dtype=r.dtype), r[..., None, :]),
+                                angle[..., None])
+        cols.append(jnp.swapaxes(turned, -1, -2))
+        cross_terms = jnp.swapaxes(_perp(turned), -1, -2)
     return u[..., :2] + q - r, jnp.concatenate(cols, -1), -q, cross_terms
 
 
