@@ -218,19 +218,26 @@ def test_overlap_depths_on_hand_worked_pairs():
 # both is a vertical depth d sqrt(2).
 
 
-def _diamonds(offset=0.0, gap=0.02):
-    def diamond(cx, cy):
-        return [[cx, cy - 1.0], [cx + 1.0, cy], [cx, cy + 1.0], [cx - 1.0, cy]]
-
+def _fixed_and_free(name, fixed, free):
+    """(model, state) of a fixed block and a free one above it (rock, joints kn = ks = 1e6,
+    friction 30 degrees)."""
     scene = parse_scene({
-        "scene": {"name": "apex on apex"},
+        "scene": {"name": name},
         "materials": {"rock": dict(ROCK)},
         "joints": {"j": {"kn": 1e6, "ks": 1e6, "friction_deg": 30.0}},
-        "blocks": [{"vertices": diamond(0.0, -1.0), "material": "rock", "fixed": True},
-                   {"vertices": diamond(offset, 1.0 + gap), "material": "rock"}],
+        "blocks": [{"vertices": fixed, "material": "rock", "fixed": True},
+                   {"vertices": free, "material": "rock"}],
     })
     model, state, _ = model_mod.build(scene)
     return model, state
+
+
+def _diamond(cx, cy):
+    return [[cx, cy - 1.0], [cx + 1.0, cy], [cx, cy + 1.0], [cx - 1.0, cy]]
+
+
+def _diamonds(offset=0.0, gap=0.02):
+    return _fixed_and_free("apex on apex", _diamond(0.0, -1.0), _diamond(offset, 1.0 + gap))
 
 
 def _one_substep(model, state):
@@ -289,16 +296,7 @@ def _apex_on_roof(gap=0.02):
     faces slope down at 15 degrees (an interior angle of 150 degrees at its apex)."""
     slope = np.tan(np.radians(15.0))
     roof = [[0.0, 0.0], [-2.0, -2.0 * slope], [-2.0, -3.0], [2.0, -3.0], [2.0, -2.0 * slope]]
-    diamond = [[0.0, gap], [1.0, 1.0 + gap], [0.0, 2.0 + gap], [-1.0, 1.0 + gap]]
-    scene = parse_scene({
-        "scene": {"name": "apex on a roof"},
-        "materials": {"rock": dict(ROCK)},
-        "joints": {"j": {"kn": 1e6, "ks": 1e6, "friction_deg": 30.0}},
-        "blocks": [{"vertices": roof, "material": "rock", "fixed": True},
-                   {"vertices": diamond, "material": "rock"}],
-    })
-    model, state, _ = model_mod.build(scene)
-    return model, state
+    return _fixed_and_free("apex on a roof", roof, _diamond(0.0, 1.0 + gap))
 
 
 def test_a_corner_that_passed_into_an_obtuse_node_gets_its_spring():
