@@ -598,8 +598,10 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
     if big:
         r = max(big, key=lambda r: r["slip"])
         pair = " and ".join(_block_name(i, nr) for i in r["slip_blocks"])
+        lead = ("stable, but" if converged else "unstable, but" if not stable
+                else "no equilibrium found, and")
         warnings.append(
-            f"{'stable' if stable else 'unstable'}, but joint slip of {1e3 * r['slip']:.0f} mm "
+            f"{lead} joint slip of {1e3 * r['slip']:.0f} mm "
             f"in one increment (load step {r['step']} of stage {r['stage']}) at blocks {pair}: "
             f"more than {LARGE_SLIP:.0%} of the block's size; review")
     verts = np.asarray(state.verts)

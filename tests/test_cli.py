@@ -296,6 +296,12 @@ def test_exit_status_follows_solver_status(fake_solver, scene_file, tmp_path, ca
     assert f"status: {status}" in captured.out
     if status == "mechanism":
         assert "moving blocks: 1" in captured.out
+    elif status == "converged":
+        assert "stable: yes" in captured.out
+    else:
+        # No mechanism found, but no equilibrium either: not "stable: yes".
+        assert f"stable: not known (no admissible equilibrium: {status})" in captured.out
+        assert "stable: yes" not in captured.out
     _no_traceback(captured)
 
 

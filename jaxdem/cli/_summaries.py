@@ -70,8 +70,13 @@ def _singular(name: str) -> str:
 def result_summary(result: Any) -> str:
     """Status, stability, monitors table and timings, as printed after a run."""
     lines = [f"status: {result.status}: {result.message}"]
-    if result.stable:
+    if result.stable and result.converged:
         lines.append("stable: yes")
+    elif result.stable:
+        # No mechanism was found, but no admissible equilibrium either (the iteration
+        # limit, an overflow, a state that breaks the law): whether the rock stands is
+        # not known, and "stable: yes" would say it does.
+        lines.append(f"stable: not known (no admissible equilibrium: {result.status})")
     else:
         ids = [str(i) for i in result.moving_blocks]
         moving = ", ".join(ids[:20])
