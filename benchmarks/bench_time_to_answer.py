@@ -43,7 +43,8 @@ Problems (scene files written to ``benchmarks/scenes/`` by this script):
   that of the middle column's top block's vertical displacement.
 - demo: ``jaxdem demo`` (no closed form).
 - grid40, grid70, grid100: the 40 x 40, 70 x 70 and 100 x 100 grids (as grid10; DDA's
-  times from issue 30).
+  times from issue 30); grid40f32, grid70f32, grid100f32: the same in float32
+  (``solver.dtype``).
 - tunnel: the 596-block standing tunnel of bench_scaling.py (spacing 1.35 m;
   no closed form).
 - ex4wet, ex2: seed examples 4 (wet slope and tunnel, 225 blocks) and 2 (tunnel and
@@ -153,7 +154,7 @@ def incline_scene(stacked: bool = False) -> dict:
             "blocks": blocks, "monitors": [{"name": "block", "point": c}]}
 
 
-def grid_scene(n: int, m: int | None = None) -> dict:
+def grid_scene(n: int, m: int | None = None, dtype: str = "float64") -> dict:
     """n x n (or n columns of m) square 1 m blocks on a fixed base 1 m high; monitor: the
     middle column's top."""
     blocks = [{"vertices": [[-1.0, -1.0], [n + 1.0, -1.0], [n + 1.0, 0.0], [-1.0, 0.0]],
@@ -163,7 +164,8 @@ def grid_scene(n: int, m: int | None = None) -> dict:
             blocks.append({"vertices": [[i, j], [i + 1, j], [i + 1, j + 1], [i, j + 1]],
                            "material": "rock"})
     mid, rows = n // 2 + 0.5, n if m is None else m
-    return {"scene": {"name": f"{n} x {rows} grid on a fixed base"}, "solver": {"load_steps": 1},
+    solver = {"load_steps": 1} if dtype == "float64" else {"load_steps": 1, "dtype": dtype}
+    return {"scene": {"name": f"{n} x {rows} grid on a fixed base"}, "solver": solver,
             "materials": {"rock": dict(ROCK)},
             "joints": {"j": {"kn": 1.0e6, "ks": 1.0e6, "friction_deg": 35.0}},
             "blocks": blocks, "monitors": [{"name": "top", "point": [mid, rows - 0.5]}]}
@@ -176,6 +178,7 @@ def write_scenes() -> dict[str, Path]:
     SCENES.mkdir(exist_ok=True)
     scenes = {"incline": incline_scene(), "grid10": grid_scene(10), "grid20": grid_scene(20),
               "grid40": grid_scene(40), "grid70": grid_scene(70), "grid100": grid_scene(100),
+              **{f"grid{n}f32": grid_scene(n, dtype="float32") for n in (40, 70, 100)},
               "tunnel": scaling_scene(1.35, "auto"),
               # The "similar" scenes: other block counts in the same size classes.
               "incline-similar": incline_scene(stacked=True),
@@ -296,7 +299,7 @@ def error_of(case: str, result: dict) -> str:
     if case == "incline":
         return f"{incline_error(result):.1e}" if result["stable"] else "slid!"
     if case.startswith("grid"):
-        return f"{grid_error(int(case[4:]), result):.1e}"
+        return f"{grid_error(int(case[4:].removesuffix('f32')), result):.1e}"
     return "-"
 
 

@@ -659,10 +659,11 @@ def _admissibility(model: Model, sub: Sub, ev) -> dict:
 def substep(model: Model, state: State, loads: Loads, warm=False):
     """Detect contacts, iterate to equilibrium at fixed geometry, commit the motion.
 
-    ``need["new_failures"]`` says whether a spring failed (first slipped or
-    opened) in this sub-step: it then loses its cohesion and tensile strength,
-    which the law applies from the next sub-step on, so the increment cannot
-    end here (a slot that failed would be reported with its intact strength).
+    ``need["new_failures"]`` says whether a spring with cohesion or tensile strength
+    failed (first slipped or opened) in this sub-step: it then loses them, which the law
+    applies from the next sub-step on, so the increment cannot end here (a slot that
+    failed would be reported with its intact strength). A clean joint's spring has
+    nothing to lose: its slip asks for no further sub-step.
     ``warm``: see :func:`_newton`.
     """
     mdl, sub, st0, pairs, need = prepare_substep(model, state, loads)
@@ -851,5 +852,9 @@ def newton_and_commit(mdl: Model, state: State, sub: Sub, st0, pairs, need, warm
         ev = _unpacked(mdl, sub, ev, sid)
     need = dict(need, slots_full=too_many, touching=touching)
     new_state, balance, snapshot = commit_substep(mdl, state, sub, pairs, du, ev)
-    need = dict(need, new_failures=jnp.any(new_state.failed.reshape(-1) & ~sub.failed))
+    # Only a failure that takes strength away is one: a slot without cohesion or
+    # tensile strength (a clean joint) that slips or opens carries the same law after.
+    weakened = (new_state.failed.reshape(-1) & ~sub.failed
+                & ((sub.prop["cohesion"] > 0) | (sub.prop["tension"] > 0)))
+    need = dict(need, new_failures=jnp.any(weakened))
     return new_state, du, c, need, balance, snapshot
