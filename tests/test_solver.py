@@ -300,3 +300,6 @@ def test_float32_settles_a_40_by_40_grid_as_the_closed_form():
     uy = result.monitors["top"]["displacement"][1]
     assert abs(-uy / settlement - 1.0) < 1e-4
     assert result.stages[0]["substeps"][0] <= 3
+    # Newton's increment in float64 (jaxdem.core._substep.WIDE): the springs' motions are
+    # not lost in the round-off of the blocks' 22 mm settlement (62 iterations in float32).
+    assert result.stages[0]["iterations"][0] <= 20

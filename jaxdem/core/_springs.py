@@ -132,9 +132,13 @@ def evaluate(model: Model, sub: Sub, du, frozen, frozen_state, prev, band):
     frozen), and ``R_law`` the residual with the law's forces everywhere.
     """
     geo = sub.geo
+    dtype = sub.load.dtype
+    # du may be wider than the scene's dtype (float64 in a float32 scene: _newton): the
+    # springs' relative motions are formed in it, then rounded.
     x = gather_pairs(du, geo["a"], geo["b"])
-    dn = jnp.sum(sub.Bn * x, axis=1)
-    ds = jnp.sum(sub.Bs * x, axis=1)
+    dn = jnp.sum(sub.Bn * x, axis=1).astype(dtype)
+    ds = jnp.sum(sub.Bs * x, axis=1).astype(dtype)
+    du = du.astype(dtype)
     gap = geo["gap"] + dn
     fn_trial = sub.fn0 - sub.prop["kn"] * gap
     fs_trial = sub.fs_old + sub.prop["ks"] * ds

@@ -105,6 +105,8 @@ def force_scales(model: Model, sub: Sub):
 #: takes 685 iterations with 12 and 816 with 4 (721 before all three), BENCHMARKS.md
 #: "Issue 30, Newton".
 FREEZE_AFTER = 12
+#: The dtype of Newton's increment du in every scene (see :func:`_newton`).
+WIDE = jnp.float64
 #: The slip tangent is tried once the secant has reduced the residual TRY_AFTER times in
 #: a row with the states held; a try that failed (did not reduce the residual), after
 #: RETRY_AFTER more such iterations per failure, and not after RETRY_LIMIT failures in
@@ -360,7 +362,7 @@ def _newton(model: Model, sub: Sub, st0, warm=False):
         idle = converged
         if model.lanes is not None:
             idle = jax.lax.psum(jnp.where(converged | c.done, 0, 1), model.lanes) == 0
-        ddu = jax.lax.cond(idle, lambda: jnp.zeros_like(c.du), newton_step)
+        ddu = jax.lax.cond(idle, lambda: jnp.zeros(c.du.shape, dtype), newton_step)
         # Still no progress: a mechanism whose residual is small (a block just
         # past limit equilibrium) would only creep, by R / (eps k) an
         # iteration, and run out of iterations instead of showing that it
@@ -430,7 +432,14 @@ def _newton(model: Model, sub: Sub, st0, warm=False):
     # Counters int32 (a weakly typed jnp.array(0) plus an int32, as ``fails`` gets, comes
     # back int32, and JAX then traced the body a second time: 0.3 s of every compilation).
     zero = jnp.zeros((), jnp.int32)
-    init = Iterate(du=jnp.zeros((N, model.ndof), dtype), st=st0, flips=zeros_s,
+    # The increment du is carried in float64 whatever the scene's dtype: a spring's
+    # force follows the difference of its two blocks' motions, and where they are large
+    # (a tall column settling as a whole: 22 mm at the top of a 40 x 40 grid) float32
+    # would keep eps |du| of it, about 4 times a top block's tolerance in round-off
+    # force: the float32 grid iterated 60 times at that level, a float32 seed example 2
+    # 330 times an increment. The springs' motions are formed from it in float64
+    # (jaxdem.core._springs.evaluate), everything else stays in the scene's dtype.
+    init = Iterate(du=jnp.zeros((N, model.ndof), WIDE), st=st0, flips=zeros_s,
                    frozen=jnp.zeros(S, bool), frozen_state=zeros_s, it=zero,
                    done=jnp.array(False), converged=jnp.array(False),
                    clipped=jnp.array(False), finite=jnp.array(True), rnorm=inf, rprev=inf,
@@ -848,6 +857,7 @@ def newton_and_commit(mdl: Model, state: State, sub: Sub, st0, pairs, need, warm
     # states, which balance the blocks; one cut short keeps the frozen ones.
     ev = evaluate(mdl, packed, du, c.frozen & ~c.converged, c.frozen_state, c.st,
                   force_scales(mdl, packed)[1])
+    du = du.astype(sub.load.dtype)  # the blocks move in the scene's dtype
     if sid is not None:
         ev = _unpacked(mdl, sub, ev, sid)
     need = dict(need, slots_full=too_many, touching=touching)
