@@ -599,7 +599,7 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
         r = max(big, key=lambda r: r["slip"])
         pair = " and ".join(_block_name(i, nr) for i in r["slip_blocks"])
         lead = ("stable, but" if converged else "unstable, but" if not stable
-                else "no equilibrium found, and")
+                else "no admissible equilibrium, and")
         warnings.append(
             f"{lead} joint slip of {1e3 * r['slip']:.0f} mm "
             f"in one increment (load step {r['step']} of stage {r['stage']}) at blocks {pair}: "

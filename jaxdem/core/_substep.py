@@ -436,9 +436,9 @@ def _newton(model: Model, sub: Sub, st0, warm=False):
     # force follows the difference of its two blocks' motions, and where they are large
     # (a tall column settling as a whole: 22 mm at the top of a 40 x 40 grid) float32
     # would keep eps |du| of it, about 4 times a top block's tolerance in round-off
-    # force: the float32 grid iterated 60 times at that level, a float32 seed example 2
-    # 330 times an increment. The springs' motions are formed from it in float64
-    # (jaxdem.core._springs.evaluate), everything else stays in the scene's dtype.
+    # force: the float32 grid iterated 60 times at that level, 11 with du in float64
+    # (BENCHMARKS.md, "Fourteenth session"). The springs' motions are formed from it in
+    # float64 (jaxdem.core._springs.evaluate), everything else stays in the scene's dtype.
     init = Iterate(du=jnp.zeros((N, model.ndof), WIDE), st=st0, flips=zeros_s,
                    frozen=jnp.zeros(S, bool), frozen_state=zeros_s, it=zero,
                    done=jnp.array(False), converged=jnp.array(False),
