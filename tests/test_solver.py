@@ -265,10 +265,11 @@ def test_only_a_failure_that_takes_strength_away_asks_for_another_substep(cohesi
     that asks for one (in float32 round-off slip of zero-force joints in a 40 x 40 grid
     took 37 sub-steps where 2 do: test below)."""
     from jaxdem.core._substep import substep
+    from jaxdem.core.state import SLIP
 
     model, state, _ = model_mod.build(parse_scene(block_on_incline(30.0, 20.0, cohesion=cohesion)))
     new, _, _, need, _, _ = substep(model, state, make_loads(model, model.f_ext))
-    slipping = np.asarray(new.cstate) == 2
+    slipping = np.asarray(new.cstate) == SLIP
     assert slipping.any() and np.asarray(new.failed)[slipping].all()
     assert bool(need["new_failures"]) is weakened
 
