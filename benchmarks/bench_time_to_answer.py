@@ -48,7 +48,8 @@ Problems (scene files written to ``benchmarks/scenes/`` by this script):
 - tunnel: the 596-block standing tunnel of bench_scaling.py (spacing 1.35 m;
   no closed form).
 - ex4wet, ex2: seed examples 4 (wet slope and tunnel, 225 blocks) and 2 (tunnel and
-  shear zone, 1,193 blocks) as shipped in examples/ (no closed form).
+  shear zone, 1,193 blocks) as shipped in examples/ (no closed form); ex2f32: seed
+  example 2 in float32 (written to benchmarks/scenes/).
 - ex3, ex3d: seed example 3 (two tunnels in meshed rock, 1,292 and 1,282 blocks), without
   and with the discontinuity D, at ``in_situ.k0`` = 1/3 (written to benchmarks/scenes/):
   as shipped (K0 = 0) the rock fails under its own weight and the initial state ends at
@@ -193,6 +194,11 @@ def write_scenes() -> dict[str, Path]:
         texts[name] = (f"# Written by benchmarks/bench_time_to_answer.py ({name}): examples/"
                        f"{file} at k0 = 1/3.\n"
                        + shipped.replace("\nk0 = 0.0\n", "\nk0 = 0.3333\n", 1))
+    # Seed example 2 in float32.
+    shipped = (HERE.parent / "examples" / "seed_example2_tunnel.toml").read_text()
+    texts["ex2f32"] = ("# Written by benchmarks/bench_time_to_answer.py (ex2f32): examples/"
+                       "seed_example2_tunnel.toml in float32.\n"
+                       + shipped.replace("[solver]\n", '[solver]\ndtype = "float32"\n', 1))
     paths = {}
     for name, text in texts.items():
         path = SCENES / f"{name}.toml"

@@ -120,20 +120,6 @@ def test_in_situ_beyond_the_rock_strength():
     assert scene.with_overrides({"materials.rock.cohesion": 420.0}).warnings == ()
 
 
-def test_float32_on_meshed_rock(tmp_path):
-    """Seed example 2 in float32 ends in a mechanism where float64 converges (BENCHMARKS.md,
-    "Fourteenth session"): float32 with intact-rock cells is warned about; float32 blocks
-    without a mesh (the grids, which it solves) are not."""
-    text = (ROOT / "examples" / "seed_example2_tunnel.toml").read_text()
-    path = tmp_path / "ex2_f32.toml"
-    path.write_text(text.replace("[solver]\n", '[solver]\ndtype = "float32"\n', 1))
-    (w,) = load_scene(path).warnings
-    assert w.startswith("solver.dtype: float32 with intact-rock cells") and "float64" in w
-    blocks = tmp_path / "blocks_f32.toml"
-    blocks.write_text(SCENE.format(E=1e7) + '\n[solver]\ndtype = "float32"\n')
-    assert load_scene(blocks).solver.dtype == "float32" and load_scene(blocks).warnings == ()
-
-
 def test_the_command_line_prints_them_on_stderr_and_writes_them_to_result_json(tmp_path, capsys):
     scene = tmp_path / "block.toml"
     scene.write_text(SCENE.format(E="5e9").replace("friction_deg = 30.0", "friction_deg = 0.5"))

@@ -596,4 +596,5 @@ def remap_history(state: State, new_pairs: jax.Array, n_blocks: int):
         failed=pick(state.failed, False),
         edge=pick(state.edge, -1),
         present=pick(state.present, False), cstate=pick(state.cstate, 0),
+        gap=pick(state.gap, 0),
     )

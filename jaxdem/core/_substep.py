@@ -107,6 +107,9 @@ def force_scales(model: Model, sub: Sub):
 FREEZE_AFTER = 12
 #: The dtype of Newton's increment du in every scene (see :func:`_newton`).
 WIDE = jnp.float64
+#: A persisting slot keeps its last gap where a new detection differs from it by less
+#: than this many round-offs of the slot's coordinates (float32: :func:`slot_fields_of`).
+GAP_ROUND_OFF = 16
 #: The slip tangent is tried once the secant has reduced the residual TRY_AFTER times in
 #: a row with the states held; a try that failed (did not reduce the residual), after
 #: RETRY_AFTER more such iterations per failure, and not after RETRY_LIMIT failures in
@@ -528,6 +531,18 @@ def slot_fields_of(mdl: Model, state: State, loads: Loads, geo: dict, hist: dict
     carried = jnp.where(hist["present"], jnp.abs(hist["fn"]) + jnp.abs(hist["fs"]), 0.0)
     geo = _snap_gaps(geo, carried)
     same = hist["present"] & (hist["edge"] == geo["edge"]) & geo["active"]
+    if geo["gap"].dtype != jnp.float64:
+        # A gap is a difference of absolute coordinates: in float32 a detection resolves
+        # it to eps |x| (3e-6 m 28 m from the origin), and a bonded cell's penalty spring
+        # (1e9 kN/m per m) turns each new detection's rounding into 3e3 kN/m of force.
+        # A slot that persists keeps the gap it ended the last sub-step with where the
+        # geometry agrees with it to that round-off, measured on the scene's largest
+        # coordinate for every slot alike (per slot, mirror-image slots at x and -x + 1
+        # made different choices, and a symmetric column drifted sideways).
+        eps = jnp.finfo(geo["gap"].dtype).eps
+        extent = jnp.max(jnp.where(state.alive[:, None, None], jnp.abs(state.verts), 0.0))
+        keep = same & (jnp.abs(geo["gap"] - hist["gap"]) <= GAP_ROUND_OFF * eps * extent)
+        geo = dict(geo, gap=jnp.where(keep, hist["gap"], geo["gap"]))
     failed = jnp.where(same, hist["failed"], geo["gap"] > mdl.touch_tol)
     fs_old = jnp.where(same, hist["fs"], 0.0)
     fn0 = jnp.where(same, hist["fn0"], 0.0)
@@ -584,7 +599,7 @@ def commit_substep(model: Model, state: State, sub: Sub, pairs, du, ev):
         moved, pairs=pairs, fs=ev["fs"].reshape(shape), fn=ev["fn"].reshape(shape),
         fn0=sub.fn0.reshape(shape), failed=failed_new.reshape(shape),
         edge=geo["edge"].reshape(shape), cstate=st.reshape(shape),
-        present=active.reshape(shape))
+        present=active.reshape(shape), gap=ev["gap"].reshape(shape))
     if model.n_bolts:
         rest = bolt_rest_length(model, sub, ev["bolt_length"], ev["bolt_force"], ev["bolt_state"])
         new_state = dataclasses.replace(

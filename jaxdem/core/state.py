@@ -194,7 +194,8 @@ class Model:
 
 @_pytree(
     data=["verts", "centroid", "u", "rot", "alive", "pairs", "fs", "fn", "fn0", "failed", "edge",
-          "cstate", "present", "bolt_force", "bolt_state", "bolt_rest", "strain", "stress"],
+          "cstate", "present", "gap", "bolt_force", "bolt_state", "bolt_rest", "strain",
+          "stress"],
     meta=["capacity"],
 )
 @dataclasses.dataclass(frozen=True)
@@ -215,6 +216,10 @@ class State:
       edge: (P, 2, V) int32, contacted edge of the other block.
       cstate: (P, 2, V) int32, OPEN, STICK or SLIP.
       present: (P, 2, V) bool, the slot was within the detection margin.
+      gap: (P, 2, V) m, the slot's gap at the end of the last sub-step (its detected gap
+        plus the sub-step's normal motion): where the next detection finds the same
+        gap to round-off, a float32 scene keeps this one (:func:`jaxdem.core._substep.
+        slot_fields_of`).
       bolt_force: (B,) kN/m, axial bolt force (tension positive).
       bolt_state: (B,) int32, 0 elastic, 1 yielded, 2 pulled out, 3 slack (a bolt
         that carries no compression, shortened), 4 yielded in compression.
@@ -241,6 +246,7 @@ class State:
     edge: jax.Array
     cstate: jax.Array
     present: jax.Array
+    gap: jax.Array
     bolt_force: jax.Array
     bolt_state: jax.Array
     bolt_rest: jax.Array
@@ -263,6 +269,7 @@ def empty_history(n_blocks: int, capacity: int, n_vertices: int, dtype) -> dict:
         edge=np.zeros(shape, np.int32),
         cstate=np.zeros(shape, np.int32),
         present=np.zeros(shape, bool),
+        gap=np.zeros(shape, dtype),
     ))
 
 

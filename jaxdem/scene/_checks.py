@@ -558,21 +558,6 @@ def _stiffness_warning(path: str, k: float) -> list[str]:
     return []
 
 
-def precision_warnings(solver, domain: Domain | None) -> tuple[str, ...]:
-    """float32 on meshed rock: one sentence, or none.
-
-    float32 converges on block grids up to 100 x 100 (BENCHMARKS.md, "Fourteenth
-    session") and on the small meshed patch test (tests/verification/
-    test_deformable_cells.py), but seed example 2 (1,193 intact-rock cells) ends in
-    float32 in a mechanism where float64 converges: a wrong answer. Valid input, so a
-    warning, not a refusal."""
-    if solver.dtype != "float32" or domain is None or not domain.mesh_size:
-        return ()
-    return ("solver.dtype: float32 with intact-rock cells (domain.mesh_size) is checked on "
-            "small meshes only; seed example 2 (1,193 cells) in float32 ends in a mechanism "
-            "where float64 converges: use float64 for meshed rock",)
-
-
 def in_situ_strength_warnings(in_situ: InSitu | None, domain: Domain | None, zones,
                               materials: dict) -> tuple[str, ...]:
     """A gravity in-situ state that the intact rock cannot carry, one sentence a material.

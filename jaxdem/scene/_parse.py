@@ -28,7 +28,6 @@ from jaxdem.scene._checks import (
     in_situ_strength_warnings,
     overlap_depth,
     plausibility_warnings,
-    precision_warnings,
 )
 from jaxdem.scene._fields import (
     MAX_MAGNITUDE,
@@ -253,8 +252,7 @@ def _parse(data: Any, source: str) -> Scene:
         water=water,
         stages=stages,
         warnings=(plausibility_warnings(materials, joints)
-                  + in_situ_strength_warnings(in_situ, domain, zones, materials)
-                  + precision_warnings(solver, domain)),
+                  + in_situ_strength_warnings(in_situ, domain, zones, materials)),
     )
 
 
