@@ -108,7 +108,8 @@ FREEZE_AFTER = 12
 #: The dtype of Newton's increment du in every scene (see :func:`_newton`).
 WIDE = jnp.float64
 #: A persisting slot keeps its last gap where a new detection differs from it by less
-#: than this many round-offs of the slot's coordinates (float32: :func:`slot_fields_of`).
+#: than this many round-offs of the scene's largest coordinate (float32:
+#: :func:`slot_fields_of`).
 GAP_ROUND_OFF = 16
 #: The slip tangent is tried once the secant has reduced the residual TRY_AFTER times in
 #: a row with the states held; a try that failed (did not reduce the residual), after
