@@ -290,7 +290,7 @@ def _grid_on_base(n: int, dtype: str) -> dict:
 def test_float32_settles_a_40_by_40_grid_as_the_closed_form():
     """float32 on 1,601 blocks: the top of a column of 40 blocks settles by
     sum_k W (40 - k) / k_eq, k_eq = 1 / (h / kn_i + h / kn_i + 1 / kn) per metre of joint
-    (eqs. 4, 6-7: kn_i = E / (1 - nu^2), h = 0.5 m), to 1e-4; in two sub-steps. Before
+    (eqs. 4, 6-7: kn_i = E / (1 - nu^2), h = 0.5 m), to 1e-6; in two sub-steps. Before
     the rule above, round-off slip of the zero-force joints between the columns counted
     as failures and the increment took 37 sub-steps (152 Newton iterations)."""
     n = 40
@@ -300,7 +300,9 @@ def test_float32_settles_a_40_by_40_grid_as_the_closed_form():
     k_eq = 1.0 / (0.5 / kn_i + 0.5 / kn_i + 1.0 / 1.0e6)
     settlement = sum(ROCK["unit_weight"] * (n - k) / k_eq for k in range(n))
     uy = result.monitors["top"]["displacement"][1]
-    assert abs(-uy / settlement - 1.0) < 1e-4
+    # 4e-8 measured; 4e-5 while each detection recomputed the gaps from float32
+    # coordinates (jaxdem.core._substep.GAP_ROUND_OFF: persisting contacts keep theirs).
+    assert abs(-uy / settlement - 1.0) < 1e-6
     assert result.stages[0]["substeps"][0] <= 3
     # Newton's increment in float64 (jaxdem.core._substep.WIDE): the springs' motions are
     # not lost in the round-off of the blocks' 22 mm settlement (62 iterations in float32).
