@@ -186,19 +186,19 @@ def write_scenes() -> dict[str, Path]:
               "grid10-similar": grid_scene(11, 9), "grid20-similar": grid_scene(21, 19)}
     texts = {name: f"# Written by benchmarks/bench_time_to_answer.py ({name}).\n" + to_toml(d)
              for name, d in scenes.items()}
-    # Seed example 3 at k0 = 1/3 (its file's K0 = 0 fails before any excavation).
-    for name, file in (("ex3", "seed_example3_without_D.toml"),
-                       ("ex3d", "seed_example3_with_D.toml")):
+    # Shipped examples with one line changed: seed example 3 at k0 = 1/3 (its file's K0 = 0
+    # fails before any excavation), seed example 2 in float32.
+    derived = (("ex3", "seed_example3_without_D.toml", "\nk0 = 0.0\n", "\nk0 = 0.3333\n",
+                "at k0 = 1/3"),
+               ("ex3d", "seed_example3_with_D.toml", "\nk0 = 0.0\n", "\nk0 = 0.3333\n",
+                "at k0 = 1/3"),
+               ("ex2f32", "seed_example2_tunnel.toml", "[solver]\n",
+                '[solver]\ndtype = "float32"\n', "in float32"))
+    for name, file, old, new, what in derived:
         shipped = (HERE.parent / "examples" / file).read_text()
-        assert "\nk0 = 0.0\n" in shipped, f"{file}: its in_situ.k0 line has changed"
+        assert old in shipped, f"{file}: its line {old!r} has changed"
         texts[name] = (f"# Written by benchmarks/bench_time_to_answer.py ({name}): examples/"
-                       f"{file} at k0 = 1/3.\n"
-                       + shipped.replace("\nk0 = 0.0\n", "\nk0 = 0.3333\n", 1))
-    # Seed example 2 in float32.
-    shipped = (HERE.parent / "examples" / "seed_example2_tunnel.toml").read_text()
-    texts["ex2f32"] = ("# Written by benchmarks/bench_time_to_answer.py (ex2f32): examples/"
-                       "seed_example2_tunnel.toml in float32.\n"
-                       + shipped.replace("[solver]\n", '[solver]\ndtype = "float32"\n', 1))
+                       f"{file} {what}.\n" + shipped.replace(old, new, 1))
     paths = {}
     for name, text in texts.items():
         path = SCENES / f"{name}.toml"
