@@ -97,8 +97,8 @@ def run_one(n: int, dtype: str, repeats: int) -> dict:
 
     def detect(model, verts, centroid, capacity):
         pairs, count, full = broad_phase(model, verts, capacity, state.alive)
-        geo = narrow_phase(model, verts, centroid, pairs)
-        return pairs, count, full, geo["gap"]
+        geo, _ = narrow_phase(model, verts, centroid, pairs)
+        return pairs, count, full, geo.gap
 
     det = jax.jit(detect, static_argnums=3)
     t0 = time.perf_counter()

@@ -74,7 +74,7 @@ def main() -> None:
         m, s.verts, s.centroid, p), mdl, state, pairs)))
     rows.append(("detection (prepare_substep)", timed(_substep.prepare_substep, model, state,
                                                       loads)))
-    mdl2, sub, st0, pairs, need = jax.jit(_substep.prepare_substep)(model, state, loads)
+    mdl2, sub, st0, pairs, found = jax.jit(_substep.prepare_substep)(model, state, loads)
     rows.append(("packing", timed(_substep.pack_slots, mdl2, sub, st0)))
     packed, st0p, sid, _, touching = jax.jit(_substep.pack_slots)(mdl2, sub, st0)
     newton = jax.jit(_substep._newton)(mdl2, packed, st0p)
@@ -98,8 +98,8 @@ def main() -> None:
     triplets = jax.jit(assembly)(mdl2, packed, ev)[0].shape[0]
     rows.append(("corner bound", timed(
         lambda m, sb, s, c, du: _substep.corner_bound(m, sb, s.centroid, c, du,
-                                                      packed.geo["a"].shape[0]),
-        mdl2, sub, state, need["corners"], newton.du)))
+                                                      packed.geo.a.shape[0]),
+        mdl2, sub, state, found.corners, newton.du)))
     rows.append(("whole sub-step", timed(_substep.substep, model, state, loads)))
 
     S = st0.shape[0]
@@ -109,8 +109,8 @@ def main() -> None:
           f"{model.narrow_vertices} ({model.wide_capacity} wide places); pairs "
           f"{int(count)} in {state.capacity} places, touching {int(touching)} in "
           f"{min(model.touch_capacity, state.capacity)}; slots touching "
-          f"{int(jnp.sum(sub.geo['active']))} of {S}, packed places "
-          f"{packed.geo['a'].shape[0]}; watched {int(jnp.sum(need['corners']['watch']))}; "
+          f"{int(jnp.sum(sub.geo.active))} of {S}, packed places "
+          f"{packed.geo.a.shape[0]}; watched {int(jnp.sum(found.corners.watch))}; "
           f"CHOLMOD triplets {triplets}")
     print(f"{'piece':>32s} {'ms':>9s}")
     for name, ms in rows:

@@ -370,7 +370,7 @@ def bolt_anchors(model, state, layout=None) -> list[np.ndarray]:
     if not model.n_bolts:
         return []
     g = _bolt_geometry(model, state)
-    ends = np.stack([np.asarray(g["point_b"]), np.asarray(g["point_a"])], axis=1)
+    ends = np.stack([np.asarray(g.point_b), np.asarray(g.point_a)], axis=1)
     if layout is None:
         return list(ends)
     share = np.asarray(layout.bolt_share)

@@ -47,16 +47,16 @@ def _rotated_square(cx, cy, angle_deg, side=1.0):
 def _slots(blocks, **solver):
     model, state, _ = model_mod.build(_scene(blocks, **solver))
     pairs, count, _ = broad_phase(model, state.verts, state.capacity, state.alive)
-    geo = narrow_phase(model, state.verts, state.centroid, pairs)
-    act = np.asarray(geo["active"])
-    return {k: np.asarray(v)[act] for k, v in geo.items()}, model
+    geo, _ = narrow_phase(model, state.verts, state.centroid, pairs)
+    act = np.asarray(geo.active)
+    return jax.tree.map(lambda v: np.asarray(v)[act], geo), model
 
 
 def _ends(g, decimals=9):
     """{contact point: summed share (m)}: a point where both blocks have a corner is a
     slot on each side, with half the share each (order-independent)."""
     out = {}
-    for p, s in zip(np.round(g["point"], decimals), g["share"], strict=True):
+    for p, s in zip(np.round(g.point, decimals), g.share, strict=True):
         out[tuple(p)] = out.get(tuple(p), 0.0) + float(s)
     return out
 
@@ -64,47 +64,47 @@ def _ends(g, decimals=9):
 def test_face_gives_two_points_sharing_the_face_length():
     g, _ = _slots([_square(0, 0, 2, 1), _square(0, 1, 2, 1)])
     # The corners coincide: each end is found from both blocks, half the share each.
-    assert len(g["gap"]) == 4
-    np.testing.assert_allclose(g["share"], 0.5)
+    assert len(g.gap) == 4
+    np.testing.assert_allclose(g.share, 0.5)
     ends = _ends(g)
     assert sorted(ends) == [(0.0, 1.0), (2.0, 1.0)]
     np.testing.assert_allclose(list(ends.values()), [1.0, 1.0])  # Le = 2 m, half each
-    np.testing.assert_allclose(np.abs(g["normal"][:, 1]), 1.0)
-    np.testing.assert_allclose(g["gap"], 0.0, atol=1e-12)
+    np.testing.assert_allclose(np.abs(g.normal[:, 1]), 1.0)
+    np.testing.assert_allclose(g.gap, 0.0, atol=1e-12)
     # Distances from the contact line to both centroids (eqs. 6-7).
-    np.testing.assert_allclose(g["h_a"], 0.5)
-    np.testing.assert_allclose(g["h_b"], 0.5)
+    np.testing.assert_allclose(g.h_a, 0.5)
+    np.testing.assert_allclose(g.h_b, 0.5)
 
 
 def test_offset_faces_share_the_overlap():
     # Upper block shifted 0.6 m: the faces overlap over 1.4 m, from x = 0.6 to 2.0.
     g, _ = _slots([_square(0, 0, 2, 1), _square(0.6, 1, 2, 1)])
-    assert len(g["gap"]) == 2
-    np.testing.assert_allclose(np.sort(g["point"][:, 0]), [0.6, 2.0], atol=1e-12)
-    np.testing.assert_allclose(g["share"], [0.7, 0.7])
+    assert len(g.gap) == 2
+    np.testing.assert_allclose(np.sort(g.point[:, 0]), [0.6, 2.0], atol=1e-12)
+    np.testing.assert_allclose(g.share, [0.7, 0.7])
 
 
 def test_corner_on_a_face_gives_one_point():
     # A square standing on its corner (45 degrees) on a wide block.
     h = math.sqrt(2) / 2
     g, model = _slots([_square(-2, -1, 4, 1), _rotated_square(0.0, h, 45.0)])
-    assert len(g["gap"]) == 1
-    np.testing.assert_allclose(g["point"][0], [0.0, 0.0], atol=1e-12)
-    np.testing.assert_allclose(g["normal"][0], [0.0, 1.0], atol=1e-12)
-    assert g["share"][0] == pytest.approx(float(model.corner_share) * 1.0)
+    assert len(g.gap) == 1
+    np.testing.assert_allclose(g.point[0], [0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(g.normal[0], [0.0, 1.0], atol=1e-12)
+    assert g.share[0] == pytest.approx(float(model.corner_share) * 1.0)
 
 
 def test_blocks_beyond_the_margin_have_no_contact():
     g, model = _slots([_square(0, 0), _square(0, 1.5)], step_length=0.05)
-    assert len(g["gap"]) == 0
+    assert len(g.gap) == 0
 
 
 def test_gap_within_the_margin_is_an_open_slot_with_positive_gap():
     g, _ = _slots([_square(0, 0), _square(0, 1.05)], step_length=0.05)
     # Each end seen from both blocks (corners 5 cm apart), half the share each.
-    assert len(g["gap"]) == 4
-    np.testing.assert_allclose(g["gap"], 0.05, rtol=1e-12)
-    np.testing.assert_allclose(g["share"], 0.25)
+    assert len(g.gap) == 4
+    np.testing.assert_allclose(g.gap, 0.05, rtol=1e-12)
+    np.testing.assert_allclose(g.share, 0.25)
 
 
 def test_overlapping_blocks_have_negative_gap_on_the_right_face():
@@ -113,21 +113,21 @@ def test_overlapping_blocks_have_negative_gap_on_the_right_face():
     model, state, _ = model_mod.build(_scene([_square(0, 0), _square(0, 1)]))
     verts = state.verts.at[1, :, 1].add(-0.001)  # scenes refuse overlaps: move it here
     pairs, _, _ = broad_phase(model, verts, state.capacity, state.alive)
-    geo = narrow_phase(model, verts, state.centroid.at[1, 1].add(-0.001), pairs)
-    act = np.asarray(geo["active"])
-    g = {k: np.asarray(v)[act] for k, v in geo.items()}
+    geo, _ = narrow_phase(model, verts, state.centroid.at[1, 1].add(-0.001), pairs)
+    act = np.asarray(geo.active)
+    g = jax.tree.map(lambda v: np.asarray(v)[act], geo)
     # Each end is found from both blocks (their corners 1 mm apart): half the share each.
-    assert len(g["gap"]) == 4
-    np.testing.assert_allclose(g["gap"], -0.001, rtol=1e-9)
-    np.testing.assert_allclose(np.abs(g["normal"][:, 1]), 1.0)
-    np.testing.assert_allclose(g["share"], 0.25)
+    assert len(g.gap) == 4
+    np.testing.assert_allclose(g.gap, -0.001, rtol=1e-9)
+    np.testing.assert_allclose(np.abs(g.normal[:, 1]), 1.0)
+    np.testing.assert_allclose(g.share, 0.25)
     np.testing.assert_allclose(sorted(_ends(g, 2).values()), [0.5, 0.5])
 
 
 def test_side_by_side_blocks_touch_on_the_vertical_face():
     g, _ = _slots([_square(0, 0), _square(1, 0)])
-    assert len(g["gap"]) == 4 and len(_ends(g)) == 2
-    np.testing.assert_allclose(np.abs(g["normal"][:, 0]), 1.0)
+    assert len(g.gap) == 4 and len(_ends(g)) == 2
+    np.testing.assert_allclose(np.abs(g.normal[:, 0]), 1.0)
 
 
 def _grid(n, jitter=0.0, size=0.9, seed=0):
@@ -185,28 +185,28 @@ def test_narrow_phase_jit_matches_eager_and_vmaps_over_positions():
     pairs, _, _ = broad_phase(model, state.verts, state.capacity, state.alive)
     eager = narrow_phase(model, state.verts, state.centroid, pairs)
     jitted = jax.jit(narrow_phase)(model, state.verts, state.centroid, pairs)
-    for k in eager:
-        np.testing.assert_allclose(np.asarray(eager[k]), np.asarray(jitted[k]))
+    for x, y in zip(jax.tree.leaves(eager), jax.tree.leaves(jitted), strict=True):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y))
     shifts = jnp.array([0.0, 0.001, -0.002])
     verts = state.verts[None].repeat(3, 0).at[:, 1, :, 1].add(shifts[:, None])
-    batched = jax.vmap(narrow_phase, in_axes=(None, 0, None, None))(
+    batched, _ = jax.vmap(narrow_phase, in_axes=(None, 0, None, None))(
         model, verts, state.centroid, pairs)
     for k in range(3):
-        one = narrow_phase(model, verts[k], state.centroid, pairs)
-        np.testing.assert_allclose(np.asarray(batched["gap"][k]), np.asarray(one["gap"]))
-    act = np.asarray(batched["active"][1])
-    np.testing.assert_allclose(np.asarray(batched["gap"][1])[act], 0.001, rtol=1e-9)
+        one, _ = narrow_phase(model, verts[k], state.centroid, pairs)
+        np.testing.assert_allclose(np.asarray(batched.gap[k]), np.asarray(one.gap))
+    act = np.asarray(batched.active[1])
+    np.testing.assert_allclose(np.asarray(batched.gap[1])[act], 0.001, rtol=1e-9)
 
 
 def test_gap_gradient_matches_finite_differences():
     """d(gap)/d(vertical position of the upper block) = 1 for a horizontal face."""
     model, state, _ = model_mod.build(_scene([_square(0, 0, 2, 1), _square(0.3, 1, 1, 1)]))
     pairs, _, _ = broad_phase(model, state.verts, state.capacity, state.alive)
-    act = np.asarray(narrow_phase(model, state.verts, state.centroid, pairs)["active"])
+    act = np.asarray(narrow_phase(model, state.verts, state.centroid, pairs)[0].active)
 
     def total_gap(dy):
         v = state.verts.at[1, :, 1].add(dy)
-        return jnp.sum(jnp.where(act, narrow_phase(model, v, state.centroid, pairs)["gap"], 0.0))
+        return jnp.sum(jnp.where(act, narrow_phase(model, v, state.centroid, pairs)[0].gap, 0.0))
 
     g = jax.grad(total_gap)(0.0)
     fd = (total_gap(1e-6) - total_gap(-1e-6)) / 2e-6
@@ -248,18 +248,20 @@ def test_narrow_phase_tests_most_pairs_with_their_own_vertex_count():
     model = dataclasses.replace(model, narrow_vertices=v, wide_capacity=wide)
     pairs, _, full = broad_phase(model, state.verts, state.capacity, state.alive)
     assert not bool(full)
-    split = narrow_phase(model, state.verts, state.centroid, pairs)
-    whole = narrow_phase(dataclasses.replace(model, narrow_vertices=8), state.verts,
-                         state.centroid, pairs)
-    act = np.asarray(whole["active"])
-    np.testing.assert_array_equal(np.asarray(split["active"]), act)
+    split, _ = narrow_phase(model, state.verts, state.centroid, pairs)
+    whole, _ = narrow_phase(dataclasses.replace(model, narrow_vertices=8), state.verts,
+                            state.centroid, pairs)
+    act = np.asarray(whole.active)
+    np.testing.assert_array_equal(np.asarray(split.active), act)
     # Each octagon's two bottom corners bear on the triangle under it, face to face.
-    on_octagons = act & (np.asarray(whole["a"]) >= 20) | act & (np.asarray(whole["b"]) >= 20)
+    on_octagons = act & (np.asarray(whole.a) >= 20) | act & (np.asarray(whole.b) >= 20)
     assert on_octagons.sum() >= 6
     for k in ("gap", "point", "normal", "share", "h_a", "h_b", "far_gap"):
-        np.testing.assert_allclose(np.asarray(split[k])[act], np.asarray(whole[k])[act],
+        np.testing.assert_allclose(np.asarray(getattr(split, k))[act],
+                                   np.asarray(getattr(whole, k))[act],
                                    rtol=0, atol=1e-12, err_msg=k)
     for k in ("edge", "own_edge", "joint", "halved", "a", "b"):
-        np.testing.assert_array_equal(np.asarray(split[k])[act], np.asarray(whole[k])[act])
+        np.testing.assert_array_equal(np.asarray(getattr(split, k))[act],
+                                      np.asarray(getattr(whole, k))[act])
     tight = dataclasses.replace(model, wide_capacity=1)
     assert bool(broad_phase(tight, state.verts, state.capacity, state.alive)[2])

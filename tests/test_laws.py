@@ -5,7 +5,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxdem.core.laws import equivalent_stiffness, forces_in_state, intact_stiffness, mohr_coulomb
+from jaxdem.core.laws import (
+    SlotLaw,
+    equivalent_stiffness,
+    forces_in_state,
+    intact_stiffness,
+    mohr_coulomb,
+)
 from jaxdem.core.state import OPEN, SLIP, STICK
 
 
@@ -24,8 +30,8 @@ def test_equivalent_stiffness_is_springs_in_series_eq_7():
 
 def _prop(c=0.0, t=0.0, phi=30.0):
     one = jnp.ones(5)
-    return dict(kn=one, ks=one, cohesion=c * one, tension=t * one,
-                tanphi=np.tan(np.radians(phi)) * one, bonded=jnp.zeros(5, bool))
+    return SlotLaw(kn=one, ks=one, cohesion=c * one, tension=t * one,
+                   tanphi=np.tan(np.radians(phi)) * one, bonded=jnp.zeros(5, bool))
 
 
 def test_mohr_coulomb_states():
@@ -89,6 +95,6 @@ def test_forces_in_the_law_state_are_the_law_forces_and_their_derivatives():
     limit = np.maximum(1.0 + np.asarray(fn_tr) * np.tan(np.radians(30.0)), 0.0)
     assert (np.abs(np.asarray(fs_stuck)) <= limit + 1e-12).all()
     np.testing.assert_allclose(np.asarray(fs_stuck)[[1, 4]], [limit[1], -limit[4]])
-    bonded = dict(prop, bonded=jnp.ones(5, bool))
+    bonded = prop._replace(bonded=jnp.ones(5, bool))
     _, fs_bonded = forces_in_state(fn_tr, fs_tr, bonded, failed, stick)
     np.testing.assert_allclose(np.asarray(fs_bonded), np.asarray(fs_tr))

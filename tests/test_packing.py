@@ -100,28 +100,28 @@ def test_each_pairs_places_hold_its_touching_slots_and_one_more_overflows():
     packed, _, sid, too_many, touching = pack_slots(mdl, sub, st0)
     assert not bool(too_many)
     two_v = 2 * model.n_vertices
-    active = np.asarray(sub.geo["active"])
+    active = np.asarray(sub.geo.active)
     pairs = np.flatnonzero(active.reshape(-1, two_v).any(axis=1))
     assert int(touching) == len(pairs) > 0
-    grid, sid = np.asarray(packed.packed["grid"]), np.asarray(sid)
+    grid, sid = np.asarray(packed.packed.grid), np.asarray(sid)
     assert grid.shape[1] == pair_places(model) == 4 and grid.shape[0] >= len(pairs)
-    first = np.asarray(packed.packed["first"])
+    first = np.asarray(packed.packed.first)
     for q in range(grid.shape[0]):
         places = grid[q][grid[q] < sid.shape[0]]
         if q >= len(pairs):
             assert places.size == 0
             continue
         p = pairs[q]
-        assert first[q] == np.asarray(sub.geo["a"])[p * two_v]
+        assert first[q] == np.asarray(sub.geo.a)[p * two_v]
         assert sorted(sid[places]) == list(np.flatnonzero(active[p * two_v:(p + 1) * two_v])
                                            + p * two_v)
     # Five touching slots on one pair (the list has room).
     crowded = active.copy()
     crowded[:5] = True
     assert crowded.sum() <= 2 * grid.shape[0]
-    sub5 = dataclasses.replace(sub, geo=dict(sub.geo, active=jnp.asarray(crowded)))
+    sub5 = dataclasses.replace(sub, geo=sub.geo._replace(active=jnp.asarray(crowded)))
     assert bool(pack_slots(mdl, sub5, st0)[3])
     crowded[4] = False
     crowded[5:two_v] = False
-    sub4 = dataclasses.replace(sub, geo=dict(sub.geo, active=jnp.asarray(crowded)))
+    sub4 = dataclasses.replace(sub, geo=sub.geo._replace(active=jnp.asarray(crowded)))
     assert not bool(pack_slots(mdl, sub4, st0)[3])

@@ -598,25 +598,25 @@ def strength_violations(driver, tolerance: float) -> list[str]:
     """
     model, state = driver.model, driver.state
     mdl = dataclasses.replace(model, free=model.free & state.alive)
-    geo = narrow_phase(mdl, state.verts, state.centroid, state.pairs)
-    prop = {k: np.asarray(v) for k, v in slot_properties(mdl, geo).items()}
+    geo, _ = narrow_phase(mdl, state.verts, state.centroid, state.pairs)
+    prop = jax.tree.map(np.asarray, slot_properties(mdl, geo))
     flat = lambda x: np.asarray(x).reshape(-1)  # noqa: E731
     fn, fs, failed = flat(state.fn), flat(state.fs), flat(state.failed)
     cstate, present = flat(state.cstate), flat(state.present)
-    check = present & ~(prop["bonded"] & ~failed)
+    check = present & ~(prop.bonded & ~failed)
     if not check.any():
         return []
-    share = np.asarray(geo["share"])
-    c = np.where(failed, 0.0, prop["cohesion"])
-    t = np.where(failed, 0.0, prop["tension"])
-    joint = np.asarray(geo["joint"])
+    share = np.asarray(geo.share)
+    c = np.where(failed, 0.0, prop.cohesion)
+    t = np.where(failed, 0.0, prop.tension)
+    joint = np.asarray(geo.joint)
     c_unit = np.asarray(model.joint_c)[joint]
     t_unit = np.asarray(model.joint_t)[joint]
     scale = max(float(np.max(np.abs(fn[present]) + np.abs(fs[present]), initial=0.0)),
                 float(model.f_ref))
     allow = (10.0 * tolerance * scale
              + np.where(failed, 0.0, c_unit + t_unit) * 10.0 * float(model.touch_tol))
-    limit = np.maximum(c + fn * prop["tanphi"], 0.0)
+    limit = np.maximum(c + fn * prop.tanphi, 0.0)
     out = []
     names = {OPEN: "open", SLIP: "slipping"}
     for k in np.nonzero(check & (fn < -t - allow))[0]:
@@ -625,7 +625,7 @@ def strength_violations(driver, tolerance: float) -> list[str]:
     for k in np.nonzero(check & (np.abs(fs) > limit + allow))[0]:
         out.append(f"slot {k} ({names.get(int(cstate[k]), 'stuck')}, failed {bool(failed[k])}, "
                    f"share {share[k]:.3g} m): |fs| {abs(fs[k]):.6g} > limit {limit[k]:.6g} "
-                   f"(c {c[k]:.4g}, fn {fn[k]:.6g}, tan phi {prop['tanphi'][k]:.4g}) kN/m")
+                   f"(c {c[k]:.4g}, fn {fn[k]:.6g}, tan phi {prop.tanphi[k]:.4g}) kN/m")
     return out
 
 

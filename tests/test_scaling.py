@@ -88,10 +88,10 @@ def test_sparse_solve_of_one_iteration_matches_dense_lu(path, monkeypatch):
     coupling = None
     if path != "cholesky":
         # -tan(phi) kn Bs Bn^T, as a slipping slot couples its shear to its normal force.
-        third = sub.geo["active"] & (jnp.arange(st0.shape[0]) % 3 == 0)
+        third = sub.geo.active & (jnp.arange(st0.shape[0]) % 3 == 0)
         assert int(third.sum()) > 10
-        coupling = (sub.geo["a"], sub.geo["b"], sub.Bs, sub.Bn,
-                    jnp.where(third, -0.6 * sub.prop["kn"], 0.0))
+        coupling = (sub.geo.a, sub.geo.b, sub.Bs, sub.Bn,
+                    jnp.where(third, -0.6 * sub.prop.kn, 0.0))
     if path == "klu fallback":
         monkeypatch.setattr(_linsolve, "GMRES_MAX", 1)
     if path == "gmres":  # GMRES's own answer: the fallback would give NaN
@@ -211,9 +211,9 @@ def test_pcg_and_compaction_match_a_dense_solve():
     packed = compact_terms(mdl, terms)
     assert packed[3].shape[0] < terms[3].shape[0]
     assert np.isclose(np.sum(np.abs(packed[3])), np.sum(np.abs(terms[3])))
-    x_cg = solve_cg(mdl, sub, terms, ev["R"], 1e-12)
+    x_cg = solve_cg(mdl, sub, terms, ev.R, 1e-12)
     a, b, B, k = terms
-    x_dense = solve_dense(mdl, sub, (a, b, B, B, k), ev["R"])
+    x_dense = solve_dense(mdl, sub, (a, b, B, B, k), ev.R)
     np.testing.assert_allclose(np.asarray(x_cg), np.asarray(x_dense), rtol=0,
                                atol=1e-9 * np.abs(np.asarray(x_dense)).max())
 

@@ -272,7 +272,7 @@ def test_only_a_failure_that_takes_strength_away_asks_for_another_substep(cohesi
     new, _, _, need, _, _ = substep(model, state, make_loads(model, model.f_ext))
     slipping = np.asarray(new.cstate) == SLIP
     assert slipping.any() and np.asarray(new.failed)[slipping].all()
-    assert bool(need["new_failures"]) is weakened
+    assert bool(need.new_failures) is weakened
 
 
 def _grid_on_base(n: int, dtype: str) -> dict:

@@ -45,22 +45,22 @@ def test_slip_tangent_is_the_derivative_of_the_residual_in_held_states():
     # A band of about the median excess over the strength of the slots that slip
     # without one: about half of them stay stuck within it.
     law = evaluate(mdl, sub, du, none, none.astype(st0.dtype), st0, force_scales(mdl, sub)[1])
-    limit = np.asarray(sub.prop["cohesion"]) + np.asarray(law["fn"]) * np.asarray(
-        sub.prop["tanphi"])
-    excess = np.abs(np.asarray(law["fs_trial"])) - limit
-    over = np.unique(excess[np.asarray(law["state"]) == SLIP])  # the two sides of a contact alike
+    limit = np.asarray(sub.prop.cohesion) + np.asarray(law.fn) * np.asarray(
+        sub.prop.tanphi)
+    excess = np.abs(np.asarray(law.fs_trial)) - limit
+    over = np.unique(excess[np.asarray(law.state) == SLIP])  # the two sides of a contact alike
     k = over.size // 2
     band = float(0.5 * (over[k - 1] + over[k]))  # between two slots: none at its edge
     law = evaluate(mdl, sub, du, none, none.astype(st0.dtype), st0, band)
-    limit = np.asarray(sub.prop["cohesion"]) + np.asarray(law["fn"]) * np.asarray(
-        sub.prop["tanphi"])  # the band moves the opening threshold too
-    active = np.asarray(sub.geo["active"])
-    held = law["state"]
+    limit = np.asarray(sub.prop.cohesion) + np.asarray(law.fn) * np.asarray(
+        sub.prop.tanphi)  # the band moves the opening threshold too
+    active = np.asarray(sub.geo.active)
+    held = law.state
     st = np.asarray(held)
     assert (active & (st == SLIP)).sum() >= 4, "the move should make joints slip"
-    fs, fs_trial = np.abs(np.asarray(law["fs"])), np.abs(np.asarray(law["fs_trial"]))
+    fs, fs_trial = np.abs(np.asarray(law.fs)), np.abs(np.asarray(law.fs_trial))
     in_band = (active & (st == STICK) & (fs_trial > limit + 1e-3 * fs_trial.max())
-               & ~np.asarray(sub.prop["bonded"]))
+               & ~np.asarray(sub.prop.bonded))
     assert in_band.sum() >= 2 and np.allclose(fs[in_band], fs_trial[in_band])
     frozen = jnp.asarray(active)
     Kv, fd = _tangent_and_difference(mdl, sub, du, frozen, held, band, rng, size)
@@ -76,14 +76,14 @@ def test_exact_tangent_of_slots_held_stuck_beyond_their_strength():
     mdl, sub, st0, du, rng, size = _moved_tunnel()
     none = jnp.zeros_like(st0, bool)
     law = evaluate(mdl, sub, du, none, none.astype(st0.dtype), st0, 0.0)
-    active = np.asarray(sub.geo["active"])
-    slipping = active & (np.asarray(law["state"]) == SLIP)
+    active = np.asarray(sub.geo.active)
+    slipping = active & (np.asarray(law.state) == SLIP)
     assert slipping.sum() >= 4, "the move should make joints slip"
-    held = jnp.where(jnp.asarray(slipping), STICK, law["state"])
+    held = jnp.where(jnp.asarray(slipping), STICK, law.state)
     frozen = jnp.asarray(active)
     ev = evaluate(mdl, sub, du, frozen, held, held, 0.0)
     # Held stuck, they carry the limit, as the law does.
-    np.testing.assert_allclose(np.asarray(ev["fs"])[slipping], np.asarray(law["fs"])[slipping],
+    np.testing.assert_allclose(np.asarray(ev.fs)[slipping], np.asarray(law.fs)[slipping],
                                rtol=1e-12)
     Kv, fd = _tangent_and_difference(mdl, sub, du, frozen, held, 0.0, rng, size, exact=True)
     np.testing.assert_allclose(Kv, fd, rtol=0, atol=1e-6 * np.abs(Kv).max())

@@ -36,10 +36,112 @@ slots (the sensitivities differentiate the active ones alone).
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 
 from jaxdem.core.state import Model, State
+
+
+class Slots(NamedTuple):
+    """The spring slots of a detection, S = P x 2 x V of them (S, ...) arrays
+    (:func:`narrow_phase`), or any subset of them.
+
+    ``a`` the vertex block, ``b`` the face block, ``active`` (a spring: within the
+    margin, bearing on a face), ``gap`` (m, negative = overlap), ``point`` (the vertex,
+    m), ``normal`` and ``tangent`` of the contacted face, ``edge`` (its index in b),
+    ``own_edge`` (the vertex block's face anti-parallel to it, or -1), ``halved`` (both
+    blocks see the point, each takes half), ``share`` (effective length Le of the
+    point, m, paper eq. 8), ``h_a``, ``h_b`` (distances of the centroids from the
+    contact line, m, eqs. 6-7), ``joint`` (joint id), ``corner`` (a corner-to-edge
+    point, not part of an edge-to-edge contact), ``far_gap`` (m, the gap at the other
+    end of an edge-to-edge overlap) and ``far_point`` (that end; the point itself for
+    a corner).
+    """
+
+    a: jax.Array
+    b: jax.Array
+    active: jax.Array
+    gap: jax.Array
+    point: jax.Array
+    normal: jax.Array
+    tangent: jax.Array
+    edge: jax.Array
+    own_edge: jax.Array
+    halved: jax.Array
+    share: jax.Array
+    h_a: jax.Array
+    h_b: jax.Array
+    joint: jax.Array
+    corner: jax.Array
+    far_gap: jax.Array
+    far_point: jax.Array
+
+
+class Corners(NamedTuple):
+    """The detection's vertices without a spring near another block's node (S, ...), for
+    the step bound of :func:`jaxdem.core._substep.corner_bound`: ``watch`` (a vertex
+    within the margin that bears on nothing), ``node_gap`` (S, 2) its distances (m,
+    negative behind) from the lines of the two faces at the face block's node nearest
+    to it, ``node_normal`` (S, 2, 2) their outward normals (values, no derivative)."""
+
+    watch: jax.Array
+    node_gap: jax.Array
+    node_normal: jax.Array
+
+
+class History(NamedTuple):
+    """Each slot's history carried from the last sub-step (:func:`remap_history`): forces
+    ``fs``, ``fn``, ``fn0`` (kN/m), ``failed``, ``edge``, ``present``, ``cstate`` and
+    ``gap`` (m), the arrays of :class:`jaxdem.core.state.State` laid out along a pair
+    list."""
+
+    fs: jax.Array
+    fn: jax.Array
+    fn0: jax.Array
+    failed: jax.Array
+    edge: jax.Array
+    present: jax.Array
+    cstate: jax.Array
+    gap: jax.Array
+
+
+class _Bearing(NamedTuple):
+    """How a vertex bears on a face (:func:`_slot_geometry`): gap and far_gap (m), s_e (its
+    position along the face, m), share (m, before halving), h_x, h_y (m), far_point."""
+
+    gap: jax.Array
+    s_e: jax.Array
+    share: jax.Array
+    h_x: jax.Array
+    h_y: jax.Array
+    far_gap: jax.Array
+    far_point: jax.Array
+
+
+class _PairSlots(NamedTuple):
+    """The slots of the vertices of one block of each pair against the other's faces, per
+    pair (:func:`_vertex_edge`, :func:`_pair_slots`): :class:`Slots`' fields before the
+    pair's blocks, joints and h floors are put in (h_x, h_y: :class:`_Bearing`), and
+    :class:`Corners`'. ``halved`` is None until :func:`_pair_slots` sets it."""
+
+    active: jax.Array
+    gap: jax.Array
+    point: jax.Array
+    normal: jax.Array
+    tangent: jax.Array
+    edge: jax.Array
+    own_edge: jax.Array
+    share: jax.Array
+    h_x: jax.Array
+    h_y: jax.Array
+    far_gap: jax.Array
+    far_point: jax.Array
+    watch: jax.Array
+    node_gap: jax.Array
+    node_normal: jax.Array
+    halved: jax.Array | None = None
 
 
 def _take(x, idx, axis):
@@ -230,8 +332,7 @@ def _slot_geometry(model: Model, xv, x_next, x_prev, cx, cy, q, n, t, L_e, l_out
     is anti-parallel to it (edge-to-edge). ``inside``: the vertex is inside
     the face's span (None: from the values here). Any shapes that broadcast;
     :func:`_vertex_edge` calls it per pair, :func:`slot_geometry` per slot.
-    Returns gap, s_e (the vertex's position along the face), share (before
-    halving), h_x, h_y, far_gap and far_point.
+    Returns a :class:`_Bearing`.
     """
     gap = _dot(xv - q, n)
     s_e = _dot(xv - q, t)
@@ -264,13 +365,14 @@ def _slot_geometry(model: Model, xv, x_next, x_prev, cx, cy, q, n, t, L_e, l_out
     # no face of its own on the contact: its h is to Y's face.
     h_x = jnp.maximum(_dot(cx - jnp.where(parallel[..., None], xv, q), n), 0.0)
     h_y = jnp.maximum(_dot(q - cy, n), 0.0)
-    return dict(gap=gap, s_e=s_e, share=share, h_x=h_x, h_y=h_y,
-                far_gap=jnp.where(parallel, far_gap, gap),
-                far_point=xv + jnp.where(parallel, s_far - s0, 0.0)[..., None] * t)
+    return _Bearing(gap=gap, s_e=s_e, share=share, h_x=h_x, h_y=h_y,
+                    far_gap=jnp.where(parallel, far_gap, gap),
+                    far_point=xv + jnp.where(parallel, s_far - s0, 0.0)[..., None] * t)
 
 
-def _slot_finish(model: Model, g, halved, X, Y, widths):
-    """share halved where both sides see the point; h_a, h_b with their floors.
+def _slot_finish(model: Model, g: _Bearing, halved, X, Y, widths):
+    """(share, h_a, h_b): share halved where both sides see the point; h_a, h_b with
+    their floors.
 
     A centroid on or behind the contact line (a corner reaching round the
     end of a face) would give h = 0 and, against a rigid wall, an infinite
@@ -279,9 +381,9 @@ def _slot_finish(model: Model, g, halved, X, Y, widths):
     face has h = 5 mm, not 0.5 m: a floor on the radius would make it 100
     times too soft).
     """
-    return dict(share=jnp.where(halved, 0.5, 1.0) * g["share"],
-                h_a=jnp.maximum(g["h_x"], 0.1 * jnp.minimum(model.radius[X], widths[X])),
-                h_b=jnp.maximum(g["h_y"], 0.1 * jnp.minimum(model.radius[Y], widths[Y])))
+    return (jnp.where(halved, 0.5, 1.0) * g.share,
+            jnp.maximum(g.h_x, 0.1 * jnp.minimum(model.radius[X], widths[X])),
+            jnp.maximum(g.h_y, 0.1 * jnp.minimum(model.radius[Y], widths[Y])))
 
 
 #: How far (a fraction of the smaller block's step length) a corner may pass into another
@@ -304,10 +406,11 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ex, ey, cy, width, entered):
       cx, cy: (P, 2) centroids. ex, ey: edges of X and of Y (output of :func:`edges`).
       width: (P,) Y's least width (:func:`block_widths`).
       entered: (P,) depth (m) inside Y past which a vertex at a node has a spring.
-    Returns a dict of (P, V) arrays: active, gap (m, negative = overlap), point,
-    normal and tangent of the contacted face, edge index, share (m), h_x, h_y (m),
-    own_edge (X's face anti-parallel to it, or -1), far_gap and far_point; watch,
-    node_gap (P, V, 2) and node_normal (P, V, 2, 2) (see :func:`narrow_phase`).
+    Returns a :class:`_PairSlots` of (P, V, ...) arrays, ``halved`` None: active, gap
+    (m, negative = overlap), point, normal and tangent of the contacted face, edge index,
+    share (m), h_x, h_y (m), own_edge (X's face anti-parallel to it, or -1), far_gap and
+    far_point; watch, node_gap (P, V, 2) and node_normal (P, V, 2, 2) (see
+    :func:`narrow_phase`).
     """
     q0, _, ly, ty, ny, emy = ey
     V = xv.shape[1]
@@ -409,23 +512,25 @@ def _vertex_edge(model: Model, xv, nvx, vmx, cx, ex, ey, cy, width, entered):
     # A vertex a little past the end of a face still bears on it: blocks whose
     # corners coincide (a regular grid) shift by joint shear, and the contact
     # point must not hop to the other block's vertex and lose its history.
-    s_e = g.pop("s_e")
-    in_span = (s_e >= -model.span_tol) & (s_e <= L_e + model.span_tol)
+    in_span = (g.s_e >= -model.span_tol) & (g.s_e <= L_e + model.span_tol)
     near = vmx & (dmax <= model.margin) & in_span & ~beside
     # Faces that meet end to end (a diagonal neighbour on a grid) share no
     # length: no spring.
-    active = near & (g["share"] > 0)
+    active = near & (g.share > 0)
     own_edge = jnp.where(po, k[None, :], jnp.where(pi, prev, -1))
     # A vertex within the margin that bears on nothing (at a node of Y: corner to
     # corner, faces meeting end to end) has no spring to stop it: its step is bounded
     # by the two faces at that node instead (:func:`corner_bound`).
     watch = vmx & (dmax <= model.margin) & ~active
-    return dict(g, active=active, point=xv, normal=n, tangent=t, edge=e, own_edge=own_edge,
-                watch=watch, node_gap=node_gap, node_normal=node_normal)
+    return _PairSlots(active=active, gap=g.gap, point=xv, normal=n, tangent=t, edge=e,
+                      own_edge=own_edge, share=g.share, h_x=g.h_x, h_y=g.h_y,
+                      far_gap=g.far_gap, far_point=g.far_point, watch=watch,
+                      node_gap=node_gap, node_normal=node_normal)
 
 
 def _pair_slots(model: Model, verts, nv, vmask, e_all, widths, centroid, pairs):
-    """:func:`narrow_phase`'s slots of each pair as (P, 2, V', ...) arrays, V' = verts.shape[1]
+    """:func:`narrow_phase`'s slots of each pair: a :class:`_PairSlots` of (P, 2, V', ...)
+    arrays, V' = verts.shape[1]
     (``nv``, ``vmask`` and ``e_all``, the blocks' :func:`edges`, for these vertices;
     ``widths`` from all of them)."""
     N = model.n_blocks
@@ -448,7 +553,7 @@ def _pair_slots(model: Model, verts, nv, vmask, e_all, widths, centroid, pairs):
     s = _vertex_edge(model, both(va, vb), both(nva, nvb), both(vma, vmb), both(ca, cb),
                      tuple(map(both, ea, eb)), tuple(map(both, eb, ea)), both(cb, ca),
                      both(widths[b], widths[a]), both(entered, entered))
-    s0, s1 = ({k: x[:P] for k, x in s.items()}, {k: x[P:] for k, x in s.items()})
+    s0, s1 = jax.tree.map(lambda x: x[:P], s), jax.tree.map(lambda x: x[P:], s)
     # A vertex of b at a contact point of a vertex of a (within that point's
     # overlap) is the same contact point, seen from both sides: each side's slot
     # takes half of it. Keeping one side's only (the lower block index's) made
@@ -456,13 +561,12 @@ def _pair_slots(model: Model, verts, nv, vmask, e_all, widths, centroid, pairs):
     # blocks the two sides' points can bear on different faces, and a mirrored
     # scene, numbered otherwise, got other springs (tests/test_metamorphic.py).
     dv = vb[:, :, None, :] - va[:, None, :, :]  # (P, V of b, V of a)
-    reach = (1.5 * jnp.maximum(jnp.abs(s0["gap"])[:, None, :], jnp.abs(s1["gap"])[:, :, None])
+    reach = (1.5 * jnp.maximum(jnp.abs(s0.gap)[:, None, :], jnp.abs(s1.gap)[:, :, None])
              + model.span_tol)
-    same = ((_dot(dv, dv) <= reach**2) & s0["active"][:, None, :]
-            & s1["active"][:, :, None])
-    s0["halved"] = jnp.any(same, axis=1)
-    s1["halved"] = jnp.any(same, axis=2)
-    return {k: jnp.stack([s0[k], s1[k]], axis=1) for k in s0}
+    same = (_dot(dv, dv) <= reach**2) & s0.active[:, None, :] & s1.active[:, :, None]
+    s0 = s0._replace(halved=jnp.any(same, axis=1))
+    s1 = s1._replace(halved=jnp.any(same, axis=2))
+    return jax.tree.map(lambda x, y: jnp.stack([x, y], axis=1), s0, s1)
 
 
 def wide_pairs(model: Model, pairs):
@@ -474,32 +578,24 @@ def wide_pairs(model: Model, pairs):
                                 | wide[jnp.clip(pairs[:, 1], 0, N - 1)])
 
 
-def _pad_vertices(key, x, V):
+def _pad_vertices(slots: _PairSlots, V) -> _PairSlots:
     """(P, 2, v, ...) slots padded to V vertices with copies of vertex 0's, inactive (the
     values a padded vertex, a copy of the first, has; active, watch and halved False)."""
-    pad = jnp.broadcast_to(x[:, :, :1], x.shape[:2] + (V - x.shape[2],) + x.shape[3:])
-    if key in ("active", "watch", "halved"):
-        pad = jnp.zeros_like(pad)
-    return jnp.concatenate([x, pad], axis=2)
+    def pad(key, x):
+        fill = jnp.broadcast_to(x[:, :, :1], x.shape[:2] + (V - x.shape[2],) + x.shape[3:])
+        if key in ("active", "watch", "halved"):
+            fill = jnp.zeros_like(fill)
+        return jnp.concatenate([x, fill], axis=2)
+
+    return _PairSlots(*(pad(k, x) for k, x in zip(slots._fields, slots, strict=True)))
 
 
-def narrow_phase(model: Model, verts, centroid, pairs):
+def narrow_phase(model: Model, verts, centroid, pairs) -> tuple[Slots, Corners]:
     """Spring slots of every candidate pair, flattened to S = P * 2 * V.
 
-    Returns a dict of (S, ...) arrays: ``a`` (vertex block), ``b`` (face
-    block), ``active``, ``gap``, ``point``, ``normal``, ``tangent``, ``edge``,
-    ``share`` (effective length of the point, m), ``h_a``, ``h_b`` (distances of
-    the centroids from the contact line, m, eqs. 6-7), ``joint`` (joint id),
-    ``corner`` (a corner-to-edge point, not part of an edge-to-edge contact),
-    ``far_gap`` (m, the gap at the other end of an edge-to-edge overlap) and
-    ``far_point`` (that end; the point itself for a corner); and, for
-    :func:`slot_geometry`, ``own_edge`` (the vertex block's face anti-parallel
-    to the contacted one, or -1) and ``halved`` (both blocks see the point); for
-    the step bound of vertices without a spring
-    (:func:`jaxdem.core._substep.corner_bound`), ``watch`` (a vertex within the margin
-    that bears on nothing), ``node_gap`` (S, 2) its distances (m, negative behind)
-    from the lines of the two faces at the face block's node nearest to it, and
-    ``node_normal`` (S, 2, 2) their outward normals (values, no derivative).
+    Returns the :class:`Slots` (``own_edge`` and ``halved`` are the choices that
+    :func:`slot_geometry` takes again) and, for the step bound of vertices without a
+    spring (:func:`jaxdem.core._substep.corner_bound`), the :class:`Corners`.
     """
     N = model.n_blocks
     P = pairs.shape[0]
@@ -520,44 +616,46 @@ def narrow_phase(model: Model, verts, centroid, pairs):
         nv = jnp.minimum(model.nv, v)
         out = _pair_slots(model, verts[:, :v], nv, model.vmask[:, :v], edges(verts[:, :v], nv),
                           widths, centroid, pairs)
-        out = {k: _pad_vertices(k, x, V) for k, x in out.items()}
+        out = _pad_vertices(out, V)
         if model.wide_capacity:
             at = jnp.nonzero(wide_pairs(model, pairs), size=model.wide_capacity,
                              fill_value=P)[0]
             wide = jnp.concatenate([pairs, jnp.full((1, 2), N, pairs.dtype)])[at]
             w = _pair_slots(model, verts, model.nv, model.vmask, e_all, widths, centroid, wide)
-            out = {k: out[k].at[at].set(w[k], mode="drop") for k in out}
+            out = jax.tree.map(lambda x, y: x.at[at].set(y, mode="drop"), out, w)
     a = jnp.clip(pairs[:, 0], 0, N - 1)
     b = jnp.clip(pairs[:, 1], 0, N - 1)
     A = jnp.stack([jnp.broadcast_to(a[:, None], (P, V)), jnp.broadcast_to(b[:, None], (P, V))], 1)
     B = jnp.stack([jnp.broadcast_to(b[:, None], (P, V)), jnp.broadcast_to(a[:, None], (P, V))], 1)
     # Joint of the slot: that of the contacted face, else of the own face, else the default.
-    j_face = model.edge_joint[B, out["edge"]]
-    j_own = jnp.where(out["own_edge"] >= 0,
-                      model.edge_joint[A, jnp.maximum(out["own_edge"], 0)], -1)
+    j_face = model.edge_joint[B, out.edge]
+    j_own = jnp.where(out.own_edge >= 0, model.edge_joint[A, jnp.maximum(out.own_edge, 0)], -1)
     default = model.joint_kn.shape[0] - 1
     joint = jnp.where(j_face >= 0, j_face, jnp.where(j_own >= 0, j_own, default))
     S = P * 2 * V
     flat = lambda x: x.reshape((S,) + x.shape[3:])  # noqa: E731
-    res = {k: flat(v) for k, v in out.items()}
-    res.update(_slot_finish(model, res, res["halved"], flat(A), flat(B), widths))
-    del res["h_x"], res["h_y"]
-    res.update(a=flat(A), b=flat(B), joint=flat(joint), corner=res["own_edge"] < 0)
-    return res
+    f = jax.tree.map(flat, out)
+    share, h_a, h_b = _slot_finish(model, f, f.halved, flat(A), flat(B), widths)
+    slots = Slots(a=flat(A), b=flat(B), active=f.active, gap=f.gap, point=f.point,
+                  normal=f.normal, tangent=f.tangent, edge=f.edge, own_edge=f.own_edge,
+                  halved=f.halved, share=share, h_a=h_a, h_b=h_b, joint=flat(joint),
+                  corner=f.own_edge < 0, far_gap=f.far_gap, far_point=f.far_point)
+    return slots, Corners(watch=f.watch, node_gap=f.node_gap, node_normal=f.node_normal)
 
 
-def slot_geometry(model: Model, verts, centroid, slots: dict) -> dict:
+def slot_geometry(model: Model, verts, centroid, slots: Slots, vertex) -> Slots:
     """The differentiable fields of given slots (any subset, in any order) of :func:`narrow_phase`.
 
-    ``slots`` holds each slot's choices as :func:`narrow_phase` made them: ``a``,
-    ``b``, ``edge``, ``own_edge``, ``halved`` and ``vertex`` (the vertex's index in
-    block a). Returns ``gap``, ``point``, ``normal``, ``tangent``, ``share``,
-    ``h_a``, ``h_b``, ``far_gap`` and ``far_point`` evaluated at ``verts`` and
-    ``centroid``: the same values as :func:`narrow_phase` where the slot is
-    active (``inside`` is then implied), and their derivatives through the same
-    expressions. The sensitivities differentiate the active slots alone.
+    ``slots`` holds each slot's choices as :func:`narrow_phase` made them (``a``,
+    ``b``, ``edge``, ``own_edge``, ``halved``; ``joint``, ``active`` and ``corner`` are
+    kept as they are), ``vertex`` the vertex's index in block a. Returns ``slots``
+    with ``gap``, ``point``, ``normal``, ``tangent``, ``share``, ``h_a``, ``h_b``,
+    ``far_gap`` and ``far_point`` evaluated at ``verts`` and ``centroid``: the same
+    values as :func:`narrow_phase` where the slot is active (``inside`` is then
+    implied), and their derivatives through the same expressions. The sensitivities
+    differentiate the active slots alone.
     """
-    X, Y, k, e, own = slots["a"], slots["b"], slots["vertex"], slots["edge"], slots["own_edge"]
+    X, Y, k, e, own = slots.a, slots.b, vertex, slots.edge, slots.own_edge
     e_all = edges(verts, model.nv)
     q0, _, length, t_all, n_all, _ = e_all
     nv = model.nv[X]
@@ -568,18 +666,16 @@ def slot_geometry(model: Model, verts, centroid, slots: dict) -> dict:
     g = _slot_geometry(model, xv, verts[X, nxt], verts[X, prev], centroid[X], centroid[Y],
                        q0[Y, e], n, t, length[Y, e], length[X, k], length[X, prev], own == k,
                        own == prev, inside=jnp.ones(k.shape, bool))
-    g.pop("s_e")
-    g.update(_slot_finish(model, g, slots["halved"], X, Y, block_widths(e_all)))
-    del g["h_x"], g["h_y"]
-    return dict(g, point=xv, normal=n, tangent=t)
+    share, h_a, h_b = _slot_finish(model, g, slots.halved, X, Y, block_widths(e_all))
+    return slots._replace(gap=g.gap, point=xv, normal=n, tangent=t, share=share, h_a=h_a,
+                          h_b=h_b, far_gap=g.far_gap, far_point=g.far_point)
 
 
-def remap_history(state: State, new_pairs: jax.Array, n_blocks: int):
+def remap_history(state: State, new_pairs: jax.Array, n_blocks: int) -> History:
     """Carry each slot's history (forces, failure, face) to the new pair list.
 
     Slots are matched by their stable key (pair, side, vertex). Returns the old
-    ``fs``, ``fn``, ``fn0``, ``failed``, ``edge``, ``present`` and ``cstate`` arrays laid out
-    along ``new_pairs`` (empty where the pair is new).
+    arrays laid out along ``new_pairs`` (P, 2, V) (empty where the pair is new).
     """
     N1 = n_blocks + 1
     okey = state.pairs[:, 0].astype(jnp.int64) * N1 + state.pairs[:, 1]
@@ -591,7 +687,7 @@ def remap_history(state: State, new_pairs: jax.Array, n_blocks: int):
     src = order[pos]
     pick = lambda x, empty: jnp.where(  # noqa: E731
         hit[:, None, None], x[src], jnp.asarray(empty, x.dtype))
-    return dict(
+    return History(
         fs=pick(state.fs, 0), fn=pick(state.fn, 0), fn0=pick(state.fn0, 0),
         failed=pick(state.failed, False),
         edge=pick(state.edge, -1),

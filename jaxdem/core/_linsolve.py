@@ -49,7 +49,7 @@ def _unsymmetric(sub: Sub, terms, coupling):
     if coupling is None:
         a, b, B, k = terms
         return a, b, B, B, k
-    return with_coupling(terms, coupling, sub.geo["a"].shape[0])
+    return with_coupling(terms, coupling, sub.geo.a.shape[0])
 
 
 def stiffness_blocks(model: Model, sub: Sub, a, b, L, Rt, k, diag):
@@ -71,7 +71,7 @@ def stiffness_blocks(model: Model, sub: Sub, a, b, L, Rt, k, diag):
     the matrix has the same pattern either way.
     """
     N, D = model.n_blocks, model.ndof
-    S = sub.geo["a"].shape[0]
+    S = sub.geo.a.shape[0]
     V = model.n_vertices
     T = (k.shape[0] - n_bolt_terms(model)) // S
     if sub.packed is None:
@@ -81,9 +81,9 @@ def stiffness_blocks(model: Model, sub: Sub, a, b, L, Rt, k, diag):
         first, second = a[:S:2 * V], b[:S:2 * V]
     else:
         # Each pair's packed slots side by side (:func:`jaxdem.core._substep.pack_slots`).
-        grid, slot = sub.packed["grid"], sub.packed["slot"]
-        first, second = sub.packed["first"], sub.packed["second"]
-    touching = jnp.any(jnp.append(sub.geo["active"], False)[grid], axis=1)
+        grid, slot = sub.packed.grid, sub.packed.slot
+        first, second = sub.packed.first, sub.packed.second
+    touching = jnp.any(jnp.append(sub.geo.active, False)[grid], axis=1)
     # A candidate pair that does not touch couples nothing: its (zero) blocks go to its
     # first block's diagonal, so that the matrix's pattern holds the touching pairs
     # alone (most candidate pairs do not touch: on seed example 2, 4,300 of 8,678; a

@@ -1,8 +1,9 @@
 """The springs of one geometry sub-step: forces, states, residual and stiffness terms.
 
-Owns :class:`Sub` (everything fixed during a sub-step, a pytree inside jit),
-the contact springs' and bolts' forces and states for a trial increment du
-(:func:`evaluate`, through the contact law of :mod:`jaxdem.core.laws`), the
+Owns :class:`Sub` (everything fixed during a sub-step, a pytree inside jit, with its
+:class:`Bolts` and :class:`Packing`), the contact springs' and bolts' forces and states
+for a trial increment du (:func:`evaluate`, a :class:`Springs`, through the contact law
+of :mod:`jaxdem.core.laws`), the
 residual and the per-block force scale of the equilibrium test, and the
 iteration matrix written as rank-one terms (a, b, B, k)
 (:func:`stiffness_terms`, :func:`_bolt_terms`, :func:`with_slip_coupling`).
@@ -16,17 +17,90 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 
+from jaxdem.core._contact import Slots
 from jaxdem.core.kinematics import bolt_length_derivatives, gather_pairs, scatter_pairs
-from jaxdem.core.laws import forces_in_state, mohr_coulomb
+from jaxdem.core.laws import SlotLaw, forces_in_state, mohr_coulomb
 from jaxdem.core.state import OPEN, SLIP, STICK, Model
 
 #: A slipping spring whose strength is below this fraction of its trial shear force has
 #: no shear spring in the secant matrix (:func:`stiffness_terms`).
 SLIP_SECANT = 0.01
+
+
+class Bolts(NamedTuple):
+    """The bolts during a sub-step (nb,): blocks ``a``, ``b`` (their anchors' blocks),
+    ``free_a``, ``free_b`` (those blocks have degrees of freedom), ``f_old`` the committed
+    axial force (kN/m), ``active`` (installed, both blocks alive), ``d0`` (nb, 2) anchor a
+    minus anchor b (m), ``ra``, ``rb`` (nb, 2) the anchors from their blocks' centroids (m),
+    ``rest`` the rest length (m; grows with plastic elongation)."""
+
+    a: jax.Array
+    b: jax.Array
+    free_a: jax.Array
+    free_b: jax.Array
+    f_old: jax.Array
+    active: jax.Array
+    d0: jax.Array
+    ra: jax.Array
+    rb: jax.Array
+    rest: jax.Array
+
+
+class Packing(NamedTuple):
+    """Where the touching slots of a sub-step lie (:func:`jaxdem.core._substep.pack_slots`):
+    ``slot`` (C,) the index of each among the detection's P x 2 x V (P x 2 x V for an empty
+    place), ``first`` and ``second`` (Pt,) the two blocks of each touching pair, ``grid``
+    (Pt, m) the places of each pair's slots in the packed list (C where it has fewer)."""
+
+    slot: jax.Array
+    first: jax.Array
+    second: jax.Array
+    grid: jax.Array
+
+
+class Springs(NamedTuple):
+    """The springs at a trial increment du (:func:`evaluate`); per slot (S,) unless said.
+
+    ``fn``, ``fs`` the forces carried (kN/m, compression positive), ``state`` (OPEN,
+    STICK, SLIP), ``gap`` (m), ``total_n`` the normal force with the water's, ``fn_trial``,
+    ``fs_trial`` the elastic trial forces, ``law_state`` the law's state (where a slot is
+    held frozen in another), ``misfit`` (kN/m) how far a frozen slot's forces are from the
+    law's, ``dfs_dfn`` d fs / d fn_trial in the states held; per block (N, D): ``internal``
+    the springs' (and cells', bolts') forces, ``R`` the residual (load + internal on the
+    free blocks), ``R_law`` the residual with the law's forces everywhere; ``stress`` (N, 3)
+    of deformable cells (None for rigid blocks); of the bolts (nb, ..., None without):
+    ``bolt_force`` (kN/m), ``bolt_state`` (0 elastic, else yielded or slack),
+    ``bolt_length`` (m), ``bolt_g``, ``bolt_H`` its gradient and Hessian in the
+    anchors' motions, ``bolt_rows`` its forces on the blocks. What
+    :func:`jaxdem.core._substep.commit_substep` reads of an evaluation on packed slots is
+    laid out over all slots, the rest None (:func:`jaxdem.core._substep._unpacked`).
+    """
+
+    fn: jax.Array
+    fs: jax.Array
+    state: jax.Array
+    gap: jax.Array
+    total_n: jax.Array
+    fn_trial: jax.Array | None = None
+    fs_trial: jax.Array | None = None
+    law_state: jax.Array | None = None
+    misfit: jax.Array | None = None
+    dfs_dfn: jax.Array | None = None
+    internal: jax.Array | None = None
+    R: jax.Array | None = None
+    R_law: jax.Array | None = None
+    stress: jax.Array | None = None
+    bolt_force: jax.Array | None = None
+    bolt_state: jax.Array | None = None
+    bolt_length: jax.Array | None = None
+    bolt_g: jax.Array | None = None
+    bolt_H: jax.Array | None = None
+    bolt_rows: jax.Array | None = None
 
 
 @functools.partial(jax.tree_util.register_dataclass, meta_fields=[], data_fields=[
@@ -36,35 +110,32 @@ SLIP_SECANT = 0.01
 class Sub:
     """Everything fixed during one geometry sub-step (a pytree that lives inside jit).
 
-    Contacts: ``geo``, ``prop``, rows ``Bn``, ``Bs`` (S, 2 D), committed shear
-    force ``fs_old``, initial normal force ``fn0``, ``failed``, water force
-    ``pw`` (S,) (pore pressure x share, on joint slots). Bolts (when the
-    scene has them): ``bolt`` dict with ``a``, ``b``, ``B`` (nb, 2 D), ``f_old``,
-    ``active``. ``load``: (N, D) external load. ``free``: (N,) blocks with
-    degrees of freedom (not fixed, not excavated). ``stress``: (N, 3)
-    committed stress of deformable blocks (tension positive); ``Kc``: their
-    (N, 6, 6) stiffness (None for rigid blocks). ``packed``: None where the slots are
-    the detection's P x 2 x V, in its order; else the touching slots alone
-    (:func:`jaxdem.core._substep.pack_slots`): ``slot`` (C,) the index of each among the
-    P x 2 x V (P x 2 x V for an empty place), ``first`` and ``second`` (P,) the two blocks
-    of each candidate pair, ``grid`` (P, m) the places of each pair's touching slots in
-    the packed list (C where a pair has fewer than m).
+    Contacts: ``geo`` (the detection's :class:`jaxdem.core._contact.Slots`), ``prop``
+    (their springs and strengths, :class:`jaxdem.core.laws.SlotLaw`), rows ``Bn``, ``Bs``
+    (S, 2 D), committed shear force ``fs_old``, initial normal force ``fn0``,
+    ``failed``, water force ``pw`` (S,) (pore pressure x share, on joint slots). Bolts
+    (when the scene has them): ``bolt``, :class:`Bolts`. ``load``: (N, D) external
+    load. ``free``: (N,) blocks with degrees of freedom (not fixed, not excavated).
+    ``stress``: (N, 3) committed stress of deformable blocks (tension positive);
+    ``Kc``: their (N, 6, 6) stiffness (None for rigid blocks). ``packed``: None where
+    the slots are the detection's P x 2 x V, in its order; else the touching slots
+    alone, :class:`Packing` (:func:`jaxdem.core._substep.pack_slots`).
     """
 
-    geo: dict
-    prop: dict
+    geo: Slots
+    prop: SlotLaw
     Bn: jax.Array
     Bs: jax.Array
     fs_old: jax.Array
     fn0: jax.Array
     failed: jax.Array
     pw: jax.Array
-    bolt: dict | None
+    bolt: Bolts | None
     load: jax.Array
     free: jax.Array
     stress: jax.Array
     Kc: jax.Array | None
-    packed: dict | None = None
+    packed: Packing | None = None
 
 
 def cell_stiffness(model: Model, free):
@@ -85,10 +156,10 @@ def _bolt_kinematics(model: Model, sub: Sub, du):
     """
     bolt = sub.bolt
     D = model.ndof
-    mask = jnp.concatenate([jnp.repeat(bolt["free_a"][:, None], D, 1),
-                            jnp.repeat(bolt["free_b"][:, None], D, 1)], 1).astype(du.dtype)
-    x = gather_pairs(du, bolt["a"], bolt["b"]) * mask
-    L, g, H = bolt_length_derivatives(D, bolt["d0"], bolt["ra"], bolt["rb"], x)
+    mask = jnp.concatenate([jnp.repeat(bolt.free_a[:, None], D, 1),
+                            jnp.repeat(bolt.free_b[:, None], D, 1)], 1).astype(du.dtype)
+    x = gather_pairs(du, bolt.a, bolt.b) * mask
+    L, g, H = bolt_length_derivatives(D, bolt.d0, bolt.ra, bolt.rb, x)
     return L, g * mask, H * mask[:, :, None] * mask[:, None, :]
 
 
@@ -102,12 +173,12 @@ def _bolt_law(model: Model, sub: Sub, L):
     so that unloading is elastic from the yielded length.
     """
     bolt = sub.bolt
-    trial = model.bolt_k * (L - bolt["rest"])
+    trial = model.bolt_k * (L - bolt.rest)
     cap, comp = model.bolt_cap, model.bolt_comp
-    force = jnp.where(bolt["active"], jnp.clip(trial, -comp, cap), 0.0)
+    force = jnp.where(bolt.active, jnp.clip(trial, -comp, cap), 0.0)
     state = jnp.select([trial > cap, (trial < 0) & (comp <= 0), trial < -comp],
                        [jnp.where(model.bolt_pullout, 2, 1), 3, 4], 0)
-    state = jnp.where(bolt["active"], state, 0)
+    state = jnp.where(bolt.active, state, 0)
     return force, state.astype(jnp.int32)
 
 
@@ -115,11 +186,11 @@ def bolt_rest_length(model: Model, sub: Sub, L, force, state):
     """The rest length after the step: plastic elongation or shortening kept."""
     k = model.bolt_k
     plastic = (state == 1) | (state == 2) | (state == 4)
-    return jnp.where(sub.bolt["active"] & plastic, L - force / k, sub.bolt["rest"])
+    return jnp.where(sub.bolt.active & plastic, L - force / k, sub.bolt.rest)
 
 
-def evaluate(model: Model, sub: Sub, du, frozen, frozen_state, prev, band):
-    """Spring forces, states and the residual for a trial increment du.
+def evaluate(model: Model, sub: Sub, du, frozen, frozen_state, prev, band) -> Springs:
+    """Spring forces, states and the residual for a trial increment du (:class:`Springs`).
 
     The springs carry the effective normal force fn (compression positive):
     fn0 - kn * gap, through the tension cut-off and Mohr-Coulomb; the blocks
@@ -135,14 +206,14 @@ def evaluate(model: Model, sub: Sub, du, frozen, frozen_state, prev, band):
     dtype = sub.load.dtype
     # du may be wider than the scene's dtype (float64 in a float32 scene: _newton): the
     # springs' relative motions are formed in it, then rounded.
-    x = gather_pairs(du, geo["a"], geo["b"])
+    x = gather_pairs(du, geo.a, geo.b)
     dn = jnp.sum(sub.Bn * x, axis=1).astype(dtype)
     ds = jnp.sum(sub.Bs * x, axis=1).astype(dtype)
     du = du.astype(dtype)
-    gap = geo["gap"] + dn
-    fn_trial = sub.fn0 - sub.prop["kn"] * gap
-    fs_trial = sub.fs_old + sub.prop["ks"] * ds
-    active = geo["active"]
+    gap = geo.gap + dn
+    fn_trial = sub.fn0 - sub.prop.kn * gap
+    fs_trial = sub.fs_old + sub.prop.ks * ds
+    active = geo.active
     fn_l, fs_l, st_l = mohr_coulomb(fn_trial, fs_trial, sub.prop, sub.failed, active, prev, band)
     fn_f, fs_f = forces_in_state(fn_trial, fs_trial, sub.prop, sub.failed, frozen_state, band)
     fn = jnp.where(frozen, fn_f, fn_l)
@@ -164,30 +235,31 @@ def evaluate(model: Model, sub: Sub, du, frozen, frozen_state, prev, band):
     total_n = fn + sub.pw if model.has_water else fn
     d_n = jnp.where(frozen & active, fn_l - fn, 0.0)
     d_s = jnp.where(frozen & active, fs_l - fs, 0.0)
-    internal = scatter_pairs(model.n_blocks, geo["a"], geo["b"],
+    internal = scatter_pairs(model.n_blocks, geo.a, geo.b,
                              sub.Bn * total_n[:, None] - sub.Bs * fs[:, None])
-    to_law = scatter_pairs(model.n_blocks, geo["a"], geo["b"],
+    to_law = scatter_pairs(model.n_blocks, geo.a, geo.b,
                            sub.Bn * d_n[:, None] - sub.Bs * d_s[:, None])
-    out = dict(fn=fn, fs=fs, state=st, gap=gap, fn_trial=fn_trial, fs_trial=fs_trial,
-               total_n=total_n, misfit=jnp.abs(d_n) + jnp.abs(d_s), law_state=st_l,
-               dfs_dfn=dfs_dfn)
+    bolts = {}
     if model.n_bolts:
         L, g, H = _bolt_kinematics(model, sub, du)
         bf, bst = _bolt_law(model, sub, L)
         bolt = sub.bolt
         bolt_rows = -g * bf[:, None]
-        internal = internal + scatter_pairs(model.n_blocks, bolt["a"], bolt["b"], bolt_rows)
-        out.update(bolt_force=bf, bolt_state=bst, bolt_length=L, bolt_g=g, bolt_H=H,
-                   bolt_rows=bolt_rows)
+        internal = internal + scatter_pairs(model.n_blocks, bolt.a, bolt.b, bolt_rows)
+        bolts = dict(bolt_force=bf, bolt_state=bst, bolt_length=L, bolt_g=g, bolt_H=H,
+                     bolt_rows=bolt_rows)
+    stress = None
     if model.ndof == 6:
         # Deformable blocks: the stress (committed + D d_eps) resists the strains.
         dsig = jnp.einsum("nij,nj->ni", model.cell_D, du[:, 3:])
         internal = internal.at[:, 3:].add(-model.area[:, None] * (sub.stress + dsig))
-        out["stress"] = sub.stress + dsig
-    out["internal"] = internal
-    out["R"] = jnp.where(sub.free[:, None], sub.load + internal, 0.0)
-    out["R_law"] = jnp.where(sub.free[:, None], out["R"] + to_law, 0.0)
-    return out
+        stress = sub.stress + dsig
+    R = jnp.where(sub.free[:, None], sub.load + internal, 0.0)
+    return Springs(fn=fn, fs=fs, state=st, gap=gap, total_n=total_n, fn_trial=fn_trial,
+                   fs_trial=fs_trial, law_state=st_l, misfit=jnp.abs(d_n) + jnp.abs(d_s),
+                   dfs_dfn=dfs_dfn, internal=internal, R=R,
+                   R_law=jnp.where(sub.free[:, None], R + to_law, 0.0), stress=stress,
+                   **bolts)
 
 
 def block_residual(model: Model, R):
@@ -196,7 +268,7 @@ def block_residual(model: Model, R):
     return jnp.maximum(r, jnp.max(jnp.abs(R[:, 2:]), axis=1) / model.radius)
 
 
-def block_scale(model: Model, sub: Sub, ev=None):
+def block_scale(model: Model, sub: Sub, ev: Springs | None = None):
     """(N,) force scale (kN/m) of each block's equilibrium test.
 
     The largest of the block's load and of the forces on it: spring forces
@@ -216,24 +288,24 @@ def block_scale(model: Model, sub: Sub, ev=None):
 
     c = jnp.abs(sub.fn0) + jnp.abs(sub.fs_old) + jnp.abs(sub.pw)
     if ev is not None:
-        c = jnp.maximum(c, jnp.abs(ev["total_n"]) + jnp.abs(ev["fs"]))
+        c = jnp.maximum(c, jnp.abs(ev.total_n) + jnp.abs(ev.fs))
     s = jnp.maximum(jnp.linalg.norm(sub.load[:, :2], axis=1),
                     jnp.max(jnp.abs(sub.load[:, 2:]), axis=1) / model.radius)
-    s = jnp.maximum(s, per_block(jnp.where(sub.geo["active"], c, 0.0), sub.geo["a"],
-                                 sub.geo["b"]))
+    s = jnp.maximum(s, per_block(jnp.where(sub.geo.active, c, 0.0), sub.geo.a,
+                                 sub.geo.b))
     if model.n_bolts:
         bolt = sub.bolt
-        f = jnp.abs(bolt["f_old"])
+        f = jnp.abs(bolt.f_old)
         if ev is not None:
-            f = jnp.maximum(f, jnp.abs(ev["bolt_force"]))
-        s = jnp.maximum(s, per_block(jnp.where(bolt["active"], f, 0.0), bolt["a"], bolt["b"]))
+            f = jnp.maximum(f, jnp.abs(ev.bolt_force))
+        s = jnp.maximum(s, per_block(jnp.where(bolt.active, f, 0.0), bolt.a, bolt.b))
     if model.ndof == 6:
-        stress = jnp.abs(sub.stress) if ev is None else jnp.abs(ev["stress"])
+        stress = jnp.abs(sub.stress) if ev is None else jnp.abs(ev.stress)
         s = jnp.maximum(s, jnp.max(stress, axis=1) * model.area / model.radius)
     return s
 
 
-def stiffness_terms(model: Model, sub: Sub, ev, consistent, near=None, exact=False):
+def stiffness_terms(model: Model, sub: Sub, ev: Springs, consistent, near=None, exact=False):
     """The iteration matrix K_t = sum_m k_m B_m B_m^T as rank-one terms (a, b, B, k).
 
     Closed slots carry both springs: for a slipping slot this is the elastic
@@ -254,10 +326,10 @@ def stiffness_terms(model: Model, sub: Sub, ev, consistent, near=None, exact=Fal
     follow its shear displacement, and loses its shear spring too; without ``exact`` it
     keeps it (the stiffness of the state it is held in).
     """
-    st = ev["state"]
-    closed = sub.geo["active"] & (st != OPEN)
-    kn = jnp.where(closed if near is None else closed | near, sub.prop["kn"], 0.0)
-    ks = jnp.where(closed & ((st == STICK) | ~consistent), sub.prop["ks"], 0.0)
+    st = ev.state
+    closed = sub.geo.active & (st != OPEN)
+    kn = jnp.where(closed if near is None else closed | near, sub.prop.kn, 0.0)
+    ks = jnp.where(closed & ((st == STICK) | ~consistent), sub.prop.ks, 0.0)
     # A slipping spring whose strength is under a hundredth of its trial shear
     # force (a joint at zero normal force) carries none of the shear that its
     # elastic spring would: it keeps no shear spring in the secant either.
@@ -265,18 +337,18 @@ def stiffness_terms(model: Model, sub: Sub, ev, consistent, near=None, exact=Fal
     # grid whose vertices touch the next column's blocks across a joint):
     # a 4 x 100 grid took 72 iterations, a 100 x 100 one none within 240.
     free_slip = (closed & (st == SLIP)
-                 & (jnp.abs(ev["fs"]) < SLIP_SECANT * jnp.abs(ev["fs_trial"])))
+                 & (jnp.abs(ev.fs) < SLIP_SECANT * jnp.abs(ev.fs_trial)))
     ks = jnp.where(free_slip, 0.0, ks)
-    capped = closed & (st == STICK) & (jnp.abs(ev["fs"]) < jnp.abs(ev["fs_trial"]))
+    capped = closed & (st == STICK) & (jnp.abs(ev.fs) < jnp.abs(ev.fs_trial))
     ks = jnp.where(exact & consistent & capped, 0.0, ks)
-    a, b = sub.geo["a"], sub.geo["b"]
+    a, b = sub.geo.a, sub.geo.b
     terms = [(a, b, sub.Bn, kn), (a, b, sub.Bs, ks)]
     if model.n_bolts:
         terms.append(_bolt_terms(model, sub, ev, consistent))
     return [jnp.concatenate(x) for x in zip(*terms, strict=True)]
 
 
-def _bolt_terms(model: Model, sub: Sub, ev, consistent):
+def _bolt_terms(model: Model, sub: Sub, ev: Springs, consistent):
     """The bolts' tangent as rank-one terms (a, b, v, lambda): 2 D a bolt.
 
     K_b = k g g^T + F H (:func:`_bolt_kinematics`): the axial spring (none for a
@@ -291,16 +363,16 @@ def _bolt_terms(model: Model, sub: Sub, ev, consistent):
     """
     bolt = sub.bolt
     D = model.ndof
-    g, H, F = ev["bolt_g"], ev["bolt_H"], ev["bolt_force"]
-    axial = jnp.where(bolt["active"] & ((ev["bolt_state"] == 0) | ~consistent), model.bolt_k, 0.0)
+    g, H, F = ev.bolt_g, ev.bolt_H, ev.bolt_force
+    axial = jnp.where(bolt.active & ((ev.bolt_state == 0) | ~consistent), model.bolt_k, 0.0)
     K = axial[:, None, None] * g[:, :, None] * g[:, None, :] + F[:, None, None] * H
-    K = jnp.where(bolt["active"][:, None, None], 0.5 * (K + jnp.swapaxes(K, 1, 2)), 0.0)
+    K = jnp.where(bolt.active[:, None, None], 0.5 * (K + jnp.swapaxes(K, 1, 2)), 0.0)
     lam, vec = jnp.linalg.eigh(K)
     if model.linear_solver == "cg":
         lam = jnp.maximum(lam, 0.0)
     nb = g.shape[0]
     rep = lambda x: jnp.repeat(x, 2 * D)  # noqa: E731
-    return (rep(bolt["a"]), rep(bolt["b"]), jnp.swapaxes(vec, 1, 2).reshape(nb * 2 * D, 2 * D),
+    return (rep(bolt.a), rep(bolt.b), jnp.swapaxes(vec, 1, 2).reshape(nb * 2 * D, 2 * D),
             lam.reshape(-1))
 
 
@@ -309,7 +381,7 @@ def n_bolt_terms(model: Model) -> int:
     return model.n_bolts * 2 * model.ndof
 
 
-def slip_coupling(sub: Sub, ev, on):
+def slip_coupling(sub: Sub, ev: Springs, on):
     """The slip law's coupling where ``on``, as rank-one terms (a, b, L, Rt, k) = (a, b,
     Bs, Bn, kc): one a slot, zero but where it is closed and slipping.
 
@@ -319,9 +391,9 @@ def slip_coupling(sub: Sub, ev, on):
     them Newton converges quadratically once the states hold, where the slip
     tangent's symmetric part converges linearly (about 0.7 an iteration).
     """
-    closed = sub.geo["active"] & (ev["state"] != OPEN)
-    kc = jnp.where(on & closed, -ev["dfs_dfn"] * sub.prop["kn"], 0.0)
-    return sub.geo["a"], sub.geo["b"], sub.Bs, sub.Bn, kc
+    closed = sub.geo.active & (ev.state != OPEN)
+    kc = jnp.where(on & closed, -ev.dfs_dfn * sub.prop.kn, 0.0)
+    return sub.geo.a, sub.geo.b, sub.Bs, sub.Bn, kc
 
 
 def with_coupling(terms, coupling, S: int):
@@ -334,7 +406,7 @@ def with_coupling(terms, coupling, S: int):
                  for x, c in zip((a, b, B, B, k), coupling, strict=True))
 
 
-def with_slip_coupling(model: Model, sub: Sub, ev, terms, on):
+def with_slip_coupling(model: Model, sub: Sub, ev: Springs, terms, on):
     """``terms`` (a, b, B, k) with the slip law's coupling added where ``on``: (a, b, L, Rt, k)
     (:func:`slip_coupling`, :func:`with_coupling`)."""
-    return with_coupling(terms, slip_coupling(sub, ev, on), sub.geo["a"].shape[0])
+    return with_coupling(terms, slip_coupling(sub, ev, on), sub.geo.a.shape[0])

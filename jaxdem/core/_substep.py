@@ -49,6 +49,9 @@ import jax.numpy as jnp
 
 from jaxdem.core._contact import (
     CORNER_PASS,
+    Corners,
+    History,
+    Slots,
     block_steps,
     broad_phase,
     narrow_phase,
@@ -56,6 +59,9 @@ from jaxdem.core._contact import (
 )
 from jaxdem.core._linsolve import CG_RTOL_MAX, CG_RTOL_MIN, linear_solve
 from jaxdem.core._springs import (
+    Bolts,
+    Packing,
+    Springs,
     Sub,
     block_residual,
     block_scale,
@@ -94,8 +100,8 @@ def force_scales(model: Model, sub: Sub):
     biggest = jnp.maximum(jnp.max(jnp.where(sub.free, s0, 0.0)), model.f_ref * 1e-3)
     floor = 1e3 * jnp.finfo(sub.load.dtype).eps * biggest
     s0 = jnp.maximum(s0, floor)
-    s_slot = jnp.minimum(jnp.where(sub.free, s0, jnp.inf)[sub.geo["a"]],
-                         jnp.where(sub.free, s0, jnp.inf)[sub.geo["b"]])
+    s_slot = jnp.minimum(jnp.where(sub.free, s0, jnp.inf)[sub.geo.a],
+                         jnp.where(sub.free, s0, jnp.inf)[sub.geo.b])
     return s0, 0.1 * model.tol * jnp.where(jnp.isfinite(s_slot), s_slot, biggest)
 
 
@@ -177,6 +183,32 @@ class Iterate(NamedTuple):
     fails: jax.Array
 
 
+class Detection(NamedTuple):
+    """What a sub-step's detection found beside its slots (:func:`prepare_substep`):
+    ``pairs`` the candidate pairs it needed (to compare with the state's capacity),
+    ``cell_full`` (the broad phase's cells overflowed), ``corners``
+    (:class:`jaxdem.core._contact.Corners`, for :func:`corner_bound`)."""
+
+    pairs: jax.Array
+    cell_full: jax.Array
+    corners: Corners
+
+
+class Needs(NamedTuple):
+    """What a sub-step needed of the fixed capacities, and whether it failed a spring
+    (:func:`substep`): ``pairs`` the candidate pairs, ``cell_full`` (the broad phase's
+    cells), ``slots_full`` (more touching slots, or watched vertices, than their places),
+    ``touching`` the touching pairs (to compare with ``model.touch_capacity``) and
+    ``new_failures`` (a spring with cohesion or tensile strength failed: the increment
+    cannot end with this sub-step)."""
+
+    pairs: jax.Array
+    cell_full: jax.Array
+    slots_full: jax.Array
+    touching: jax.Array
+    new_failures: jax.Array
+
+
 def _newton(model: Model, sub: Sub, st0, warm=False):
     """Newton iteration on du at fixed geometry (one sub-step).
 
@@ -206,15 +238,15 @@ def _newton(model: Model, sub: Sub, st0, warm=False):
     direct = model.linear_solver != "cg"
 
     def merit(ev, tol):
-        return jnp.sum(jnp.where(sub.free, (block_residual(model, ev["R"]) / tol) ** 2, 0.0))
+        return jnp.sum(jnp.where(sub.free, (block_residual(model, ev.R) / tol) ** 2, 0.0))
 
     def body(c: Iterate) -> Iterate:
         ev = evaluate(model, sub, c.du, c.frozen, c.frozen_state, c.st, band)
-        changed = (ev["state"] != c.st) & sub.geo["active"]
+        changed = (ev.state != c.st) & sub.geo.active
         scale_b = jnp.maximum(s0, block_scale(model, sub, ev))
         tol = model.tol * scale_b
         # Largest residual of a free block relative to its own tolerance.
-        rnorm = jnp.max(jnp.where(sub.free, block_residual(model, ev["R"]) / tol, 0.0))
+        rnorm = jnp.max(jnp.where(sub.free, block_residual(model, ev.R) / tol, 0.0))
         # Frozen slots only shape the path: the answer must balance every
         # block with the forces of the contact law itself (R_law), within the
         # same tolerance, so that no state against the law is returned. Where
@@ -230,27 +262,27 @@ def _newton(model: Model, sub: Sub, st0, warm=False):
         # slip and open at round-off forever, and kept a 70 x 70 grid iterating
         # at 0.3 tolerances (114 iterations, 16 without the condition).
         balanced = rnorm <= 1.0
-        off = sub.free & (block_residual(model, ev["R_law"]) > tol)
+        off = sub.free & (block_residual(model, ev.R_law) > tol)
         converged = balanced & ~jnp.any(off)
-        a, b = sub.geo["a"], sub.geo["b"]
-        reassign = balanced & c.frozen & (ev["misfit"] > 0) & (off[a] | off[b])
+        a, b = sub.geo.a, sub.geo.b
+        reassign = balanced & c.frozen & (ev.misfit > 0) & (off[a] | off[b])
         # How deep a slot may sink in one step: its spring's own compression
         # under the larger force scale of its two blocks.
         s_slot = jnp.where(sub.free, scale_b, 0.0)
         s_slot = jnp.maximum(s_slot[a], s_slot[b])
-        sink = s_slot / jnp.maximum(sub.prop["kn"], jnp.finfo(dtype).tiny)
+        sink = s_slot / jnp.maximum(sub.prop.kn, jnp.finfo(dtype).tiny)
         # A slot frozen open that a block has entered deeper than that is not
         # open: held open, every step would stop at its face (the closing
         # bound below) and the iteration would cycle there. It takes the law's
         # state.
-        pierced = (c.frozen & (c.frozen_state == OPEN) & sub.geo["active"]
-                   & (ev["gap"] < -sink) & (ev["law_state"] != OPEN))
+        pierced = (c.frozen & (c.frozen_state == OPEN) & sub.geo.active
+                   & (ev.gap < -sink) & (ev.law_state != OPEN))
         reassign = reassign | pierced
         flips = c.flips + changed.astype(jnp.int32)
         newly = (flips >= FREEZE_AFTER) & ~c.frozen
         frozen = c.frozen | newly
-        frozen_state = jnp.where(newly, ev["state"],
-                                 jnp.where(reassign, ev["law_state"], c.frozen_state))
+        frozen_state = jnp.where(newly, ev.state,
+                                 jnp.where(reassign, ev.law_state, c.frozen_state))
         # The secant matrix (slipping slots keep their shear spring) converges
         # only linearly where slots slip (a rate of 0.96 an iteration is common).
         # Once it has reduced the residual twice in a row with the states held and
@@ -287,9 +319,9 @@ def _newton(model: Model, sub: Sub, st0, warm=False):
         failed = c.trying & ~progress
         stall = jnp.where(still & ~gain & ~failed, c.stall + 1, 0)
         flat = jnp.where((stall > 0) & (jnp.abs(rnorm - c.rprev) <= FLAT * rnorm), c.flat + 1, 0)
-        slipping = jnp.any(sub.geo["active"] & (ev["state"] == SLIP))
+        slipping = jnp.any(sub.geo.active & (ev.state == SLIP))
         if model.n_bolts:
-            slipping |= jnp.any(sub.bolt["active"] & (ev["bolt_state"] != 0))
+            slipping |= jnp.any(sub.bolt.active & (ev.bolt_state != 0))
         # A tried step that failed is tried again once the secant has held the states
         # for RETRY_AFTER more iterations of progress per failure, up to RETRY_LIMIT
         # failures: the first try often comes while the states are still settling,
@@ -335,8 +367,8 @@ def _newton(model: Model, sub: Sub, st0, warm=False):
         # law's): a step then opens it no further than the forces ask. 100 x 100: 18
         # iterations, 70 x 70 15 -> 9; the tangent (a mechanism, tried slip) keeps
         # open slots open.
-        near = (sub.geo["active"] & (ev["state"] == OPEN) & ~tangent
-                & (ev["gap"] >= 0.0) & (sub.prop["kn"] * ev["gap"] < NEAR * band))
+        near = (sub.geo.active & (ev.state == OPEN) & ~tangent
+                & (ev.gap >= 0.0) & (sub.prop.kn * ev.gap < NEAR * band))
 
         def newton_step():
             terms = stiffness_terms(model, sub, ev, tangent, near,
@@ -347,14 +379,14 @@ def _newton(model: Model, sub: Sub, st0, warm=False):
                 # the tolerance needs (the residual test below still decides).
                 ratio = jnp.where(jnp.isfinite(c.rprev), rnorm / c.rprev, jnp.inf)
                 tol_min = jnp.min(jnp.where(sub.free, tol, jnp.inf))
-                need = 0.1 * tol_min / jnp.maximum(jnp.linalg.norm(ev["R"]),
+                need = 0.1 * tol_min / jnp.maximum(jnp.linalg.norm(ev.R),
                                                    jnp.finfo(tol.dtype).tiny)
                 eta = jnp.clip(jnp.maximum(0.9 * ratio**2, need),
                                CG_RTOL_MIN[tol.dtype == jnp.float64], CG_RTOL_MAX)
-                return linear_solve(model, sub, terms, ev["R"], rtol=eta)
+                return linear_solve(model, sub, terms, ev.R, rtol=eta)
             # The secant matrix is symmetric positive definite (CHOLMOD on the
             # sparse path), the slip tangent with its coupling is not.
-            return linear_solve(model, sub, terms, ev["R"], active=~c.done & ~converged,
+            return linear_solve(model, sub, terms, ev.R, active=~c.done & ~converged,
                                 symmetric=~tangent, coupling=slip_coupling(sub, ev, tangent))
 
         # The iterate that converged takes no step: its matrix is not
@@ -387,7 +419,7 @@ def _newton(model: Model, sub: Sub, st0, warm=False):
         # max_displacement and it was reported as a mechanism. A step within the
         # step length is Newton's, whatever its sign.
         following = creeping | (tangent & ~trying & (fit < 1.0))
-        work = jnp.sum(jnp.where(sub.free[:, None], ev["R"] * ddu, 0.0))
+        work = jnp.sum(jnp.where(sub.free[:, None], ev.R * ddu, 0.0))
         ddu = jnp.where(following & (work < 0), -ddu, ddu)
         s_travel = jnp.where(creeping & jnp.isfinite(fit), fit, jnp.minimum(fit, 1.0))
         # No step lands a block inside another. A slot may close during the step
@@ -397,10 +429,10 @@ def _newton(model: Model, sub: Sub, st0, warm=False):
         # a closed spring as its law says, so closed slots bound only a step
         # scaled beyond it (``creeping``); every step actually taken is checked.
         dn_step = jnp.sum(sub.Bn * gather_pairs(ddu, a, b), axis=1)
-        closing = sub.geo["active"] & (dn_step < 0)
-        depth = jnp.maximum(ev["gap"], 0.0) + sink
+        closing = sub.geo.active & (dn_step < 0)
+        depth = jnp.maximum(ev.gap, 0.0) + sink
         s_slots = jnp.where(closing, depth / jnp.where(closing, -dn_step, 1.0), jnp.inf)
-        is_open = ev["state"] == OPEN
+        is_open = ev.state == OPEN
         s_slots = jnp.where(is_open, s_slots, jnp.maximum(s_slots, 1.0))
         s_gap = jnp.min(s_slots, initial=jnp.inf)
         scale = jnp.minimum(s_travel, s_gap)
@@ -420,13 +452,13 @@ def _newton(model: Model, sub: Sub, st0, warm=False):
         search = (trying | ((stall > 0) & ~tangent)) & ~converged & ~clipped & (scale <= 1.0)
         if direct:
             scale = _line_search(lambda x: merit(evaluate(model, sub, x, frozen, frozen_state,
-                                                          ev["state"], band), tol),
+                                                          ev.state, band), tol),
                                  c.du, ddu, scale, merit(ev, tol), search)
         du = jnp.where(converged, c.du, c.du + scale * ddu)
         finite = jnp.all(jnp.isfinite(du))
         it = c.it + 1
         done = converged | clipped | ~finite | (it >= model.max_iterations)
-        return Iterate(du=du, st=ev["state"], flips=flips, frozen=frozen,
+        return Iterate(du=du, st=ev.state, flips=flips, frozen=frozen,
                        frozen_state=frozen_state, it=it, done=done, converged=converged,
                        clipped=clipped & ~converged, finite=finite, rnorm=rnorm * model.tol,
                        rprev=rnorm, rbest=rbest, stall=stall, settled=settled, trying=trying,
@@ -478,7 +510,7 @@ def _line_search(merit_at, du, ddu, scale, m0, on):
     return jnp.where(on & sufficient(s, m), s, scale)
 
 
-def _snap_gaps(geo: dict, carried) -> dict:
+def _snap_gaps(geo: Slots, carried) -> Slots:
     """Round-off gaps of springs that carry nothing set to zero (values only).
 
     A gap is a difference of coordinates, resolved to eps |x| at best: two faces
@@ -491,48 +523,46 @@ def _snap_gaps(geo: dict, carried) -> dict:
     is its history (in float32 a compression of a few eps |x| is a real one). The
     derivatives of the gaps are kept (jaxdem.differentiable).
     """
-    eps = jnp.finfo(geo["gap"].dtype).eps
-    resolution = 8.0 * eps * jnp.max(jnp.abs(geo["point"]), axis=1)
-    small = (jnp.abs(geo["gap"]) <= resolution) & (carried == 0)
-    return dict(geo, gap=geo["gap"] - jax.lax.stop_gradient(jnp.where(small, geo["gap"], 0.0)))
+    eps = jnp.finfo(geo.gap.dtype).eps
+    resolution = 8.0 * eps * jnp.max(jnp.abs(geo.point), axis=1)
+    small = (jnp.abs(geo.gap) <= resolution) & (carried == 0)
+    return geo._replace(gap=geo.gap - jax.lax.stop_gradient(jnp.where(small, geo.gap, 0.0)))
 
 
 def prepare_substep(model: Model, state: State, loads: Loads):
     """Detect contacts at the current geometry and carry their history: a sub-step's data.
 
-    Returns (mdl, sub, st0, pairs, need): the model with ``free`` restricted to
+    Returns (mdl, sub, st0, pairs, found): the model with ``free`` restricted to
     the blocks alive now, the :class:`jaxdem.core._springs.Sub`, the slots' starting states, the
-    pair list and what the contact list needed (``pairs``, ``cell_full``), with
-    ``corners``, the vertices that bear on nothing near another block's node
-    (:data:`CORNER_FIELDS`, for :func:`corner_bound`).
+    pair list and the :class:`Detection` (what the contact list needed, and the vertices
+    that bear on nothing near another block's node, for :func:`corner_bound`).
     """
     N = model.n_blocks
     free = model.free & state.alive
     mdl = dataclasses.replace(model, free=free)
     pairs, count, cell_full = broad_phase(mdl, state.verts, state.capacity, state.alive)
-    hist = {k: v.reshape(-1) for k, v in remap_history(state, pairs, N).items()}
-    geo = narrow_phase(mdl, state.verts, state.centroid, pairs)
-    corners = {k: geo.pop(k) for k in CORNER_FIELDS}
+    hist = jax.tree.map(lambda v: v.reshape(-1), remap_history(state, pairs, N))
+    geo, corners = narrow_phase(mdl, state.verts, state.centroid, pairs)
     geo, slots, st0 = slot_fields_of(mdl, state, loads, geo, hist)
     sub = Sub(geo=geo, **slots, **block_fields_of(model, state, loads, free))
-    return mdl, sub, st0, pairs, dict(pairs=count, cell_full=cell_full, corners=corners)
+    return mdl, sub, st0, pairs, Detection(pairs=count, cell_full=cell_full, corners=corners)
 
 
-def slot_fields_of(mdl: Model, state: State, loads: Loads, geo: dict, hist: dict):
+def slot_fields_of(mdl: Model, state: State, loads: Loads, geo: Slots, hist: History):
     """The slots' part of a sub-step's data, from their contacts and carried history.
 
     ``geo``: :func:`jaxdem.core._contact.narrow_phase`'s slots (or any subset of them, as
     the sensitivities take the active ones); ``hist``: their history
-    (:func:`jaxdem.core._contact.remap_history`, one entry per slot); ``mdl``: the model
+    (:func:`jaxdem.core._contact.remap_history`, flat: one entry per slot); ``mdl``: the model
     with ``free`` restricted to the live blocks. Returns (geo with round-off
     gaps snapped, the :class:`jaxdem.core._springs.Sub` fields prop, Bn, Bs, fs_old,
     fn0, failed and pw, the slots' starting states).
     """
     prop = slot_properties(mdl, geo)
-    carried = jnp.where(hist["present"], jnp.abs(hist["fn"]) + jnp.abs(hist["fs"]), 0.0)
+    carried = jnp.where(hist.present, jnp.abs(hist.fn) + jnp.abs(hist.fs), 0.0)
     geo = _snap_gaps(geo, carried)
-    same = hist["present"] & (hist["edge"] == geo["edge"]) & geo["active"]
-    if geo["gap"].dtype != jnp.float64:
+    same = hist.present & (hist.edge == geo.edge) & geo.active
+    if geo.gap.dtype != jnp.float64:
         # A gap is a difference of absolute coordinates: in float32 a detection resolves
         # it to eps |x| (3e-6 m 28 m from the origin), and a bonded cell's penalty spring
         # (1e9 kN/m per m) turns each new detection's rounding into 3e3 kN/m of force.
@@ -540,21 +570,21 @@ def slot_fields_of(mdl: Model, state: State, loads: Loads, geo: dict, hist: dict
         # geometry agrees with it to that round-off, measured on the scene's largest
         # coordinate for every slot alike (per slot, mirror-image slots at x and -x + 1
         # made different choices, and a symmetric column drifted sideways).
-        eps = jnp.finfo(geo["gap"].dtype).eps
+        eps = jnp.finfo(geo.gap.dtype).eps
         extent = jnp.max(jnp.where(state.alive[:, None, None], jnp.abs(state.verts), 0.0))
-        keep = same & (jnp.abs(geo["gap"] - hist["gap"]) <= GAP_ROUND_OFF * eps * extent)
-        geo = dict(geo, gap=jnp.where(keep, hist["gap"], geo["gap"]))
-    failed = jnp.where(same, hist["failed"], geo["gap"] > mdl.touch_tol)
-    fs_old = jnp.where(same, hist["fs"], 0.0)
-    fn0 = jnp.where(same, hist["fn0"], 0.0)
+        keep = same & (jnp.abs(geo.gap - hist.gap) <= GAP_ROUND_OFF * eps * extent)
+        geo = geo._replace(gap=jnp.where(keep, hist.gap, geo.gap))
+    failed = jnp.where(same, hist.failed, geo.gap > mdl.touch_tol)
+    fs_old = jnp.where(same, hist.fs, 0.0)
+    fn0 = jnp.where(same, hist.fn0, 0.0)
     # A new slot starts closed where its faces touch: round-off in a gap of
     # zero must not leave a block resting on its support without springs.
-    st0 = jnp.where(same, hist["cstate"],
-                    jnp.where(geo["gap"] <= mdl.touch_tol, STICK, OPEN)).astype(jnp.int32)
+    st0 = jnp.where(same, hist.cstate,
+                    jnp.where(geo.gap <= mdl.touch_tol, STICK, OPEN)).astype(jnp.int32)
     D = mdl.ndof
-    Bn = b_rows(mdl.free, geo["a"], geo["b"], geo["point"], geo["point"], geo["normal"],
+    Bn = b_rows(mdl.free, geo.a, geo.b, geo.point, geo.point, geo.normal,
                 state.centroid, D)
-    Bs = b_rows(mdl.free, geo["a"], geo["b"], geo["point"], geo["point"], geo["tangent"],
+    Bs = b_rows(mdl.free, geo.a, geo.b, geo.point, geo.point, geo.tangent,
                 state.centroid, D)
     if mdl.has_water:
         pw = water_force(mdl, geo, prop, loads.water_x, loads.water_y, loads.water_scale)
@@ -568,21 +598,21 @@ def block_fields_of(model: Model, state: State, loads: Loads, free) -> dict:
     bolt = None
     if model.n_bolts:
         bg = bolt_geometry(model, state)
-        alive_b = state.alive[bg["a"]] & state.alive[bg["b"]] & loads.bolt_active
-        d0 = bg["point_a"] - bg["point_b"]
+        alive_b = state.alive[bg.a] & state.alive[bg.b] & loads.bolt_active
+        d0 = bg.point_a - bg.point_b
         # A bolt is installed unstressed: its rest length is its length when it
         # first acts (bolt_rest 0 until then), and grows with its plastic elongation.
         length0 = jnp.linalg.norm(d0, axis=1)
         rest = jnp.where(state.bolt_rest > 0, state.bolt_rest, length0)
-        bolt = dict(a=bg["a"], b=bg["b"], f_old=state.bolt_force, active=alive_b, d0=d0,
-                    ra=bg["point_a"] - state.centroid[bg["a"]],
-                    rb=bg["point_b"] - state.centroid[bg["b"]], rest=rest,
-                    free_a=free[bg["a"]], free_b=free[bg["b"]])
+        bolt = Bolts(a=bg.a, b=bg.b, f_old=state.bolt_force, active=alive_b, d0=d0,
+                    ra=bg.point_a - state.centroid[bg.a],
+                    rb=bg.point_b - state.centroid[bg.b], rest=rest,
+                    free_a=free[bg.a], free_b=free[bg.b])
     return dict(bolt=bolt, load=jnp.where(free[:, None], loads.force, 0.0), free=free,
                 stress=state.stress, Kc=cell_stiffness(model, free) if model.ndof == 6 else None)
 
 
-def commit_substep(model: Model, state: State, sub: Sub, pairs, du, ev):
+def commit_substep(model: Model, state: State, sub: Sub, pairs, du, ev: Springs):
     """Move the blocks by du and commit the springs' forces and states.
 
     Returns (state, balance, snapshot): the new state, the global balance of
@@ -590,40 +620,40 @@ def commit_substep(model: Model, state: State, sub: Sub, pairs, du, ev):
     """
     N, D = model.n_blocks, model.ndof
     geo, free = sub.geo, sub.free
-    st = ev["state"]
-    active = geo["active"]
-    opened = (st == OPEN) & ((sub.prop["tension"] > 0) | (ev["gap"] > model.touch_tol))
-    failed_new = sub.failed | (active & ~sub.prop["bonded"] & ((st == SLIP) | opened))
-    moved = move_blocks(model, state, du, ev.get("stress"))
+    st = ev.state
+    active = geo.active
+    opened = (st == OPEN) & ((sub.prop.tension > 0) | (ev.gap > model.touch_tol))
+    failed_new = sub.failed | (active & ~sub.prop.bonded & ((st == SLIP) | opened))
+    moved = move_blocks(model, state, du, ev.stress)
     shape = state.fs.shape
     new_state = dataclasses.replace(
-        moved, pairs=pairs, fs=ev["fs"].reshape(shape), fn=ev["fn"].reshape(shape),
+        moved, pairs=pairs, fs=ev.fs.reshape(shape), fn=ev.fn.reshape(shape),
         fn0=sub.fn0.reshape(shape), failed=failed_new.reshape(shape),
-        edge=geo["edge"].reshape(shape), cstate=st.reshape(shape),
-        present=active.reshape(shape), gap=ev["gap"].reshape(shape))
+        edge=geo.edge.reshape(shape), cstate=st.reshape(shape),
+        present=active.reshape(shape), gap=ev.gap.reshape(shape))
     if model.n_bolts:
-        rest = bolt_rest_length(model, sub, ev["bolt_length"], ev["bolt_force"], ev["bolt_state"])
+        rest = bolt_rest_length(model, sub, ev.bolt_length, ev.bolt_force, ev.bolt_state)
         new_state = dataclasses.replace(
-            new_state, bolt_force=ev["bolt_force"], bolt_state=ev["bolt_state"],
-            bolt_rest=jnp.where(sub.bolt["active"], rest, state.bolt_rest))
+            new_state, bolt_force=ev.bolt_force, bolt_state=ev.bolt_state,
+            bolt_rest=jnp.where(sub.bolt.active, rest, state.bolt_rest))
     # Global balance (about the origin) of the free blocks: applied loads and
     # the forces from blocks without degrees of freedom (bolts anchored in
     # them included).
     c_xy = state.centroid
     moment = lambda F: F[:, 2] + cross(c_xy, F[:, :2])  # noqa: E731
-    a, b = geo["a"], geo["b"]
-    f_row = sub.Bn * ev["total_n"][:, None] - sub.Bs * ev["fs"][:, None]
+    a, b = geo.a, geo.b
+    f_row = sub.Bn * ev.total_n[:, None] - sub.Bs * ev.fs[:, None]
     reaction = (jax.ops.segment_sum(jnp.where((~free[b])[:, None], f_row[:, :3], 0.0), a, N)
                 + jax.ops.segment_sum(jnp.where((~free[a])[:, None], f_row[:, D:D + 3], 0.0),
                                       b, N))
     if model.n_bolts:
         bolt = sub.bolt
-        rows = ev["bolt_rows"]
+        rows = ev.bolt_rows
         reaction = reaction + (
-            jax.ops.segment_sum(jnp.where((~free[bolt["b"]])[:, None], rows[:, :3], 0.0),
-                                bolt["a"], N)
-            + jax.ops.segment_sum(jnp.where((~free[bolt["a"]])[:, None], rows[:, D:D + 3], 0.0),
-                                  bolt["b"], N))
+            jax.ops.segment_sum(jnp.where((~free[bolt.b])[:, None], rows[:, :3], 0.0),
+                                bolt.a, N)
+            + jax.ops.segment_sum(jnp.where((~free[bolt.a])[:, None], rows[:, D:D + 3], 0.0),
+                                  bolt.b, N))
     # The imbalance is relative to the forces in play: the summed loads and
     # reactions, or, where both are nil (an in-situ stress that balances
     # itself, with no load), the largest spring force carried at the start or
@@ -632,7 +662,7 @@ def commit_substep(model: Model, state: State, sub: Sub, pairs, du, ev):
     # scale its block was balanced to), and at least the convergence test's
     # floor (1e-3 f_ref), so that round-off over round-off does not read as
     # an imbalance of 1.
-    carried = jnp.maximum(jnp.abs(ev["total_n"]) + jnp.abs(ev["fs"]),
+    carried = jnp.maximum(jnp.abs(ev.total_n) + jnp.abs(ev.fs),
                           jnp.abs(sub.fn0) + jnp.abs(sub.fs_old) + jnp.abs(sub.pw))
     carried = jnp.max(jnp.where(active, carried, 0.0), initial=0.0)
     carried = jnp.maximum(carried, 1e-3 * model.f_ref)
@@ -645,13 +675,13 @@ def commit_substep(model: Model, state: State, sub: Sub, pairs, du, ev):
                                       jnp.sum(jnp.linalg.norm(sub.load[:, :2], axis=1))),
                           carried),
     )
-    joint = active & ~sub.prop["bonded"] & ~model.joint_intact[geo["joint"]]
-    snapshot = dict(point=geo["point"], normal=geo["normal"], a=a, b=b, active=active,
-                    fn=ev["fn"], fs=ev["fs"], pw=ev["total_n"] - ev["fn"], state=st, joint=joint)
+    joint = active & ~sub.prop.bonded & ~model.joint_intact[geo.joint]
+    snapshot = dict(point=geo.point, normal=geo.normal, a=a, b=b, active=active,
+                    fn=ev.fn, fs=ev.fs, pw=ev.total_n - ev.fn, state=st, joint=joint)
     return new_state, balance, snapshot
 
 
-def _admissibility(model: Model, sub: Sub, ev) -> dict:
+def _admissibility(model: Model, sub: Sub, ev: Springs) -> dict:
     """How far the sub-step's answer is from admissible (:data:`jaxdem.core.status.OVERLAP_TOL`).
 
     ``overlap`` (m): the deepest interpenetration at a contact; ``overlap_rel``: the
@@ -661,20 +691,20 @@ def _admissibility(model: Model, sub: Sub, ev) -> dict:
     strength; a slot held frozen in its state may, by up to the tolerance.
     """
     geo, prop = sub.geo, sub.prop
-    a, b, active = geo["a"], geo["b"], geo["active"]
+    a, b, active = geo.a, geo.b, geo.active
     size = jnp.where(sub.free, model.radius, jnp.inf)
     size = jnp.minimum(size[a], size[b])
     size = jnp.where(jnp.isfinite(size), size, jnp.maximum(model.radius[a], model.radius[b]))
-    depth = jnp.where(active, jnp.maximum(-ev["gap"], 0.0), 0.0)
-    fn, fs = ev["fn"], ev["fs"]
-    bonded = prop["bonded"] & ~sub.failed
-    c = jnp.where(sub.failed, 0.0, prop["cohesion"])
-    t_cap = jnp.where(sub.failed, 0.0, prop["tension"])
-    limit = jnp.maximum(c + fn * prop["tanphi"], 0.0)
+    depth = jnp.where(active, jnp.maximum(-ev.gap, 0.0), 0.0)
+    fn, fs = ev.fn, ev.fs
+    bonded = prop.bonded & ~sub.failed
+    c = jnp.where(sub.failed, 0.0, prop.cohesion)
+    t_cap = jnp.where(sub.failed, 0.0, prop.tension)
+    limit = jnp.maximum(c + fn * prop.tanphi, 0.0)
     over = jnp.maximum(jnp.abs(fs) - limit, -fn - t_cap)
     scale = jnp.where(sub.free, block_scale(model, sub, ev), 0.0)
     scale = jnp.maximum(jnp.maximum(scale[a], scale[b]), model.f_ref * 1e-3)
-    excess = jnp.where(active & ~bonded & (ev["state"] != OPEN), jnp.maximum(over, 0.0) / scale,
+    excess = jnp.where(active & ~bonded & (ev.state != OPEN), jnp.maximum(over, 0.0) / scale,
                        0.0)
     return dict(overlap=jnp.max(depth, initial=0.0),
                 overlap_rel=jnp.max(depth / size, initial=0.0),
@@ -684,15 +714,15 @@ def _admissibility(model: Model, sub: Sub, ev) -> dict:
 def substep(model: Model, state: State, loads: Loads, warm=False):
     """Detect contacts, iterate to equilibrium at fixed geometry, commit the motion.
 
-    ``need["new_failures"]`` says whether a spring with cohesion or tensile strength
+    ``need.new_failures`` says whether a spring with cohesion or tensile strength
     failed (first slipped or opened) in this sub-step: it then loses them, which the law
     applies from the next sub-step on, so the increment cannot end here (a slot that
     failed would be reported with its intact strength). A clean joint's spring has
     nothing to lose: its slip asks for no further sub-step.
     ``warm``: see :func:`_newton`.
     """
-    mdl, sub, st0, pairs, need = prepare_substep(model, state, loads)
-    return newton_and_commit(mdl, state, sub, st0, pairs, need, warm)
+    mdl, sub, st0, pairs, found = prepare_substep(model, state, loads)
+    return newton_and_commit(mdl, state, sub, st0, pairs, found, warm)
 
 
 def pack_slots(model: Model, sub: Sub, st0):
@@ -722,7 +752,7 @@ def pack_slots(model: Model, sub: Sub, st0):
     C = model.slots_per_pair * Pt
     if C >= S:
         return sub, st0, None, jnp.array(False), jnp.array(0)
-    active = sub.geo["active"]
+    active = sub.geo.active
     count = jnp.sum(active)
     touching = jnp.any(active.reshape(P, two_v), axis=1)
     pair = jnp.nonzero(touching, size=Pt, fill_value=P)[0]
@@ -741,15 +771,15 @@ def pack_slots(model: Model, sub: Sub, st0):
         x = x[at]
         return jnp.where(real.reshape((-1,) + (1,) * (x.ndim - 1)), x, jnp.zeros_like(x))
 
-    geo = {k: v[at] for k, v in sub.geo.items()}
-    geo["active"] = geo["active"] & real
+    geo = jax.tree.map(lambda v: v[at], sub.geo)
+    geo = geo._replace(active=geo.active & real)
     of_pair = lambda x: x.reshape(P, -1)[jnp.minimum(pair, P - 1), 0]  # noqa: E731
-    packed = Sub(geo=geo, prop={k: v[at] for k, v in sub.prop.items()}, Bn=take(sub.Bn),
+    packed = Sub(geo=geo, prop=jax.tree.map(lambda v: v[at], sub.prop), Bn=take(sub.Bn),
                  Bs=take(sub.Bs), fs_old=take(sub.fs_old), fn0=take(sub.fn0),
                  failed=take(sub.failed), pw=take(sub.pw), bolt=sub.bolt, load=sub.load,
                  free=sub.free, stress=sub.stress, Kc=sub.Kc,
-                 packed=dict(slot=sid, first=of_pair(sub.geo["a"]),
-                             second=of_pair(sub.geo["b"]), grid=grid))
+                 packed=Packing(slot=sid, first=of_pair(sub.geo.a), second=of_pair(sub.geo.b),
+                                grid=grid))
     too_many = (count > C) | jnp.any(end - start > m)
     return packed, st0[at], sid, too_many, jnp.sum(touching)
 
@@ -764,11 +794,7 @@ def pair_places(model: Model) -> int:
     return min(2 * model.slots_per_pair, 2 * model.n_vertices)
 
 
-#: The narrow phase's fields of the vertices without a spring near another block's node.
-CORNER_FIELDS = ("watch", "node_gap", "node_normal")
-
-
-def corner_bound(model: Model, sub: Sub, centroid, corners: dict, du, capacity: int):
+def corner_bound(model: Model, sub: Sub, centroid, corners: Corners, du, capacity: int):
     """The largest scale s <= 1 of ``du`` at which no corner has passed into another block,
     and whether more vertices were watched than ``capacity`` (the bound is over
     ``capacity`` of them at most: an overflow, which doubles the places).
@@ -788,9 +814,9 @@ def corner_bound(model: Model, sub: Sub, centroid, corners: dict, du, capacity: 
     next detection gives it.
     """
     geo = sub.geo
-    a, b, p = geo["a"], geo["b"], geo["point"]
+    a, b, p = geo.a, geo.b, geo.point
     S = a.shape[0]
-    watch = corners["watch"]
+    watch = corners.watch
     if capacity < S:
         # The watched vertices alone (seed example 2: 9,261 of 196,608 slots; the rows of
         # all of them cost 23 ms a sub-step).
@@ -799,20 +825,20 @@ def corner_bound(model: Model, sub: Sub, centroid, corners: dict, du, capacity: 
         watch = at < S
         at = jnp.minimum(at, S - 1)
         a, b, p = a[at], b[at], p[at]
-        corners = {k: v[at] for k, v in corners.items()}
+        corners = jax.tree.map(lambda v: v[at], corners)
     else:
         full = jnp.array(False)
     step = block_steps(model)
     tol = CORNER_PASS * jnp.minimum(step[a], step[b])
     rel = gather_pairs(du, a, b)
-    d = corners["node_gap"]
+    d = corners.node_gap
     inf = jnp.inf
     # Both faces at once, the second's vertices after the first's (one copy of the rows
     # in the program).
     K = a.shape[0]
     two = lambda x: jnp.concatenate([x, x])  # noqa: E731
     rows = b_rows(sub.free, two(a), two(b), two(p), two(p),
-                  jnp.concatenate([corners["node_normal"][:, 0], corners["node_normal"][:, 1]]),
+                  jnp.concatenate([corners.node_normal[:, 0], corners.node_normal[:, 1]]),
                   centroid, model.ndof)
     delta = jnp.sum(rows * two(rel), axis=1).reshape(2, K)
     # Out of the block on [start, end): from 0 until it crosses the line going
@@ -834,36 +860,37 @@ def corner_bound(model: Model, sub: Sub, centroid, corners: dict, du, capacity: 
     return jnp.minimum(jnp.min(reach, initial=inf), 1.0), full
 
 
-def _unpacked(model: Model, sub: Sub, ev: dict, sid) -> dict:
+def _unpacked(model: Model, sub: Sub, ev: Springs, sid) -> Springs:
     """What :func:`commit_substep` reads of an evaluation on the packed slots
     (:func:`pack_slots`), laid out over all of ``sub``'s: the rest carry no spring
     (forces 0, OPEN, their gaps and water forces as detected), as an evaluation of all
-    of them gives; the blocks' and bolts' fields as they are."""
+    of them gives; the blocks' and bolts' fields as they are, the slots' others None."""
     def put(x, rest):
         return rest.at[sid].set(x, mode="drop")
 
     zero = jnp.zeros_like(sub.fn0)
-    return dict(
-        {k: v for k, v in ev.items() if k == "stress" or k.startswith("bolt_")},
-        fn=put(ev["fn"], zero), fs=put(ev["fs"], zero), gap=put(ev["gap"], sub.geo["gap"]),
-        state=put(ev["state"], jnp.full(sub.fn0.shape, OPEN, jnp.int32)),
-        total_n=put(ev["total_n"], sub.pw if model.has_water else zero))
+    return Springs(
+        fn=put(ev.fn, zero), fs=put(ev.fs, zero), gap=put(ev.gap, sub.geo.gap),
+        state=put(ev.state, jnp.full(sub.fn0.shape, OPEN, jnp.int32)),
+        total_n=put(ev.total_n, sub.pw if model.has_water else zero), stress=ev.stress,
+        bolt_force=ev.bolt_force, bolt_state=ev.bolt_state, bolt_length=ev.bolt_length,
+        bolt_g=ev.bolt_g, bolt_H=ev.bolt_H, bolt_rows=ev.bolt_rows)
 
 
-def newton_and_commit(mdl: Model, state: State, sub: Sub, st0, pairs, need, warm=False):
-    """The rest of :func:`substep` once contacts are detected: Newton (on the touching
-    slots: :func:`pack_slots`), then commit.
+def newton_and_commit(mdl: Model, state: State, sub: Sub, st0, pairs, found: Detection,
+                      warm=False):
+    """The rest of :func:`substep` once contacts are detected (``found``): Newton (on the
+    touching slots: :func:`pack_slots`), then commit. Returns (the new state, du, the
+    :class:`Iterate` at the end, the :class:`Needs`, the balance, the snapshot).
 
     The step is cut where a corner without a spring would pass into another block
     (:func:`corner_bound`): the sub-step then ends short of equilibrium, and the next
     detection gives that corner its spring.
     """
-    need = dict(need)
-    corners = need.pop("corners")
     packed, st0_packed, sid, too_many, touching = pack_slots(mdl, sub, st0)
     c = _newton(mdl, packed, st0_packed, warm)
-    scale, watch_full = corner_bound(mdl, sub, state.centroid, corners, c.du,
-                                     packed.geo["a"].shape[0])
+    scale, watch_full = corner_bound(mdl, sub, state.centroid, found.corners, c.du,
+                                     packed.geo.a.shape[0])
     too_many = too_many | watch_full
     cut = scale < 1.0
     c = c._replace(du=jnp.where(cut, scale * c.du, c.du), converged=c.converged & ~cut,
@@ -876,11 +903,11 @@ def newton_and_commit(mdl: Model, state: State, sub: Sub, st0, pairs, need, warm
     du = du.astype(sub.load.dtype)  # the blocks move in the scene's dtype
     if sid is not None:
         ev = _unpacked(mdl, sub, ev, sid)
-    need = dict(need, slots_full=too_many, touching=touching)
     new_state, balance, snapshot = commit_substep(mdl, state, sub, pairs, du, ev)
     # Only a failure that takes strength away is one: a slot without cohesion or
     # tensile strength (a clean joint) that slips or opens carries the same law after.
     weakened = (new_state.failed.reshape(-1) & ~sub.failed
-                & ((sub.prop["cohesion"] > 0) | (sub.prop["tension"] > 0)))
-    need = dict(need, new_failures=jnp.any(weakened))
+                & ((sub.prop.cohesion > 0) | (sub.prop.tension > 0)))
+    need = Needs(pairs=found.pairs, cell_full=found.cell_full, slots_full=too_many,
+                 touching=touching, new_failures=jnp.any(weakened))
     return new_state, du, c, need, balance, snapshot

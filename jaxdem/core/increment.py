@@ -155,8 +155,8 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
         else:
             (st_new, du, newton, need, balance, snap), (dstate, dsnap) = substep_tangent(
                 model, c.state, loads, tangents["model"], c.dstate, tangents["loads"], warm=warm)
-        overflow = ((need["pairs"] > state.capacity) | need["cell_full"] | need["slots_full"]
-                    | (need["touching"] > model.touch_capacity))
+        overflow = ((need.pairs > state.capacity) | need.cell_full | need.slots_full
+                    | (need.touching > model.touch_capacity))
         travel = c.travel + block_travel(model, du)
         small = jnp.max(block_travel(model, du)) <= model.touch_tol
         # A sub-step cut by the iteration limit that brought the residual below a
@@ -172,7 +172,7 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
         # The first outcome that holds ends the increment; -1 goes on. An
         # equilibrium counts only if it is admissible (no overlap, no law broken,
         # the whole in balance): else the status says which check failed.
-        done = newton.converged & small & ~need["new_failures"]
+        done = newton.converged & small & ~need.new_failures
         status = jnp.select(
             [overflow, ~newton.finite, done & (balance["overlap_rel"] > OVERLAP_TOL),
              done & (balance["excess"] > STRENGTH_TOL),
@@ -189,11 +189,11 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
                         stuck=stuck, best=best, iterations=c.iterations + newton.it,
                         travel=travel,
                         residual=newton.rnorm, balance=balance, snapshot=snap,
-                        pairs_needed=jnp.maximum(c.pairs_needed, need["pairs"].astype(jnp.int32)),
-                        cell_full=c.cell_full | need["cell_full"],
-                        slots_full=c.slots_full | need["slots_full"],
+                        pairs_needed=jnp.maximum(c.pairs_needed, need.pairs.astype(jnp.int32)),
+                        cell_full=c.cell_full | need.cell_full,
+                        slots_full=c.slots_full | need.slots_full,
                         touch_needed=jnp.maximum(c.touch_needed,
-                                                 need["touching"].astype(jnp.int32)),
+                                                 need.touching.astype(jnp.int32)),
                         approximate=c.approximate | ~newton.converged,
                         dstate=None if tangents is None else hold(c.dstate, dstate),
                         dsnapshot=dsnap)

@@ -15,6 +15,7 @@ the driver, and by :mod:`jaxdem.results` (monitors, bolt anchors).
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -121,7 +122,19 @@ def move_blocks(model: Model, state: State, du, stress=None):
                                strain=strain, stress=new_stress)
 
 
-def bolt_geometry(model: Model, state: State):
+class BoltAnchors(NamedTuple):
+    """Each bolt's anchors where they are now (:func:`bolt_geometry`): blocks ``a``
+    (anchor 2's) and ``b`` (anchor 1's), anchors ``point_a``, ``point_b`` (nb, 2) m, and
+    ``e`` (nb, 2) the unit direction from anchor 1 to anchor 2."""
+
+    a: jax.Array
+    b: jax.Array
+    point_a: jax.Array
+    point_b: jax.Array
+    e: jax.Array
+
+
+def bolt_geometry(model: Model, state: State) -> BoltAnchors:
     """Bolt rows: anchors at their current positions, direction from anchor 1 to anchor 2."""
     i, j = model.bolt_blocks[:, 0], model.bolt_blocks[:, 1]
     p1 = state.centroid[i] + rotate_vectors(model.bolt_offsets[:, 0], state.rot[i])
@@ -129,7 +142,7 @@ def bolt_geometry(model: Model, state: State):
     d = p2 - p1
     e = d / jnp.maximum(jnp.linalg.norm(d, axis=1, keepdims=True), 1e-300)
     # Elongation = e . (disp of anchor 2 - disp of anchor 1): anchor 2 is "a".
-    return dict(a=j, b=i, point_a=p2, point_b=p1, e=e)
+    return BoltAnchors(a=j, b=i, point_a=p2, point_b=p1, e=e)
 
 
 def _perp(v):

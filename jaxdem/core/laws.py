@@ -6,9 +6,30 @@ jax.numpy, so they jit, vmap and differentiate.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, NamedTuple
+
+import jax
 import jax.numpy as jnp
 
 from jaxdem.core.state import OPEN, SLIP, STICK, WALL_ROLLER, Model
+
+if TYPE_CHECKING:
+    from jaxdem.core._contact import Slots
+
+
+class SlotLaw(NamedTuple):
+    """The spring and strength of each slot (S,) (:func:`slot_properties`): stiffnesses
+    ``kn``, ``ks`` (kN/m per m of thickness: the stiffness per unit area of eqs. 5-7
+    times the slot's share), ``cohesion`` and ``tension`` (kN/m: the strength, kPa,
+    times the share), ``tanphi``, and ``bonded`` (a wall contact present from the
+    start: elastic, no strength limit, no opening)."""
+
+    kn: jax.Array
+    ks: jax.Array
+    cohesion: jax.Array
+    tension: jax.Array
+    tanphi: jax.Array
+    bonded: jax.Array
 
 
 def intact_stiffness(E, nu):
@@ -35,7 +56,7 @@ def equivalent_stiffness(h1, h2, k1_inv, k2_inv, k0_inv):
     return 1.0 / (h1 * k1_inv + h2 * k2_inv + k0_inv)
 
 
-def slot_properties(model: Model, geo: dict) -> dict:
+def slot_properties(model: Model, geo: Slots) -> SlotLaw:
     """Spring stiffness (kN/m per m) and strength of every slot.
 
     A slot's spring is k * share (share = its part of the effective length Le).
@@ -44,27 +65,27 @@ def slot_properties(model: Model, geo: dict) -> dict:
     contact that forms later is unilateral and frictional (the joint's
     friction angle). Roller walls carry no shear.
     """
-    a, b, j = geo["a"], geo["b"], geo["joint"]
+    a, b, j = geo.a, geo.b, geo.joint
     wall = (model.kind[a] != 0) | (model.kind[b] != 0)
     roller = (model.kind[a] == WALL_ROLLER) | (model.kind[b] == WALL_ROLLER)
     jkn_inv = jnp.where(wall, 0.0, 1.0 / model.joint_kn[j])
     jks_inv = jnp.where(wall, 0.0, 1.0 / model.joint_ks[j])
-    kn = equivalent_stiffness(geo["h_a"], geo["h_b"], model.kn_inv[a], model.kn_inv[b], jkn_inv)
-    ks = equivalent_stiffness(geo["h_a"], geo["h_b"], model.ks_inv[a], model.ks_inv[b], jks_inv)
+    kn = equivalent_stiffness(geo.h_a, geo.h_b, model.kn_inv[a], model.kn_inv[b], jkn_inv)
+    ks = equivalent_stiffness(geo.h_a, geo.h_b, model.ks_inv[a], model.ks_inv[b], jks_inv)
     if model.ndof == 6:
         # Deformable blocks carry the rock's elasticity themselves: a joint is
         # its own springs, an intact bond or a wall a stiff penalty spring.
         bond = wall | model.joint_intact[j]
         safe = lambda x: jnp.where(bond, 1.0, x)  # noqa: E731
         no_joint = jnp.zeros_like(jkn_inv)
-        kn_b = equivalent_stiffness(geo["h_a"], geo["h_b"], model.kn_inv[a], model.kn_inv[b],
+        kn_b = equivalent_stiffness(geo.h_a, geo.h_b, model.kn_inv[a], model.kn_inv[b],
                                     no_joint)
-        ks_b = equivalent_stiffness(geo["h_a"], geo["h_b"], model.ks_inv[a], model.ks_inv[b],
+        ks_b = equivalent_stiffness(geo.h_a, geo.h_b, model.ks_inv[a], model.ks_inv[b],
                                     no_joint)
         kn = jnp.where(bond, model.bond_penalty * kn_b, 1.0 / safe(jkn_inv))
         ks = jnp.where(bond, model.bond_penalty * ks_b, 1.0 / safe(jks_inv))
-    share = geo["share"]
-    return dict(
+    share = geo.share
+    return SlotLaw(
         kn=kn * share,
         ks=jnp.where(roller, 0.0, ks * share),
         cohesion=model.joint_c[j] * share,
@@ -74,7 +95,7 @@ def slot_properties(model: Model, geo: dict) -> dict:
     )
 
 
-def mohr_coulomb(fn_trial, fs_trial, prop: dict, failed, active, prev=None, band=0.0):
+def mohr_coulomb(fn_trial, fs_trial, prop: SlotLaw, failed, active, prev=None, band=0.0):
     """Tension cut-off and Mohr-Coulomb slip of trial spring forces.
 
     Args:
@@ -101,16 +122,16 @@ def mohr_coulomb(fn_trial, fs_trial, prop: dict, failed, active, prev=None, band
     """
     # Wall contacts present from the start are bonded; one that forms later
     # (failed from its first detection) is an ordinary frictional contact.
-    bonded = prop["bonded"] & ~failed
-    t_cap = jnp.where(failed, 0.0, prop["tension"])
-    c = jnp.where(failed, 0.0, prop["cohesion"])
+    bonded = prop.bonded & ~failed
+    t_cap = jnp.where(failed, 0.0, prop.tension)
+    c = jnp.where(failed, 0.0, prop.cohesion)
     if prev is None:
         threshold = -t_cap
     else:
         threshold = jnp.where(prev == OPEN, -t_cap + band, -t_cap - band)
     opened = ~bonded & (fn_trial < threshold)
     fn = jnp.where(opened | ~active, 0.0, fn_trial)
-    limit = jnp.maximum(c + fn * prop["tanphi"], 0.0)
+    limit = jnp.maximum(c + fn * prop.tanphi, 0.0)
     slip_at = limit if prev is None else jnp.where(prev == SLIP, limit, limit + band)
     slip = ~bonded & ~opened & (jnp.abs(fs_trial) > slip_at)
     fs = jnp.where(opened | ~active, 0.0, jnp.where(slip, jnp.sign(fs_trial) * limit, fs_trial))
@@ -118,7 +139,7 @@ def mohr_coulomb(fn_trial, fs_trial, prop: dict, failed, active, prev=None, band
     return fn, fs, state
 
 
-def forces_in_state(fn_trial, fs_trial, prop: dict, failed, state, band=0.0):
+def forces_in_state(fn_trial, fs_trial, prop: SlotLaw, failed, state, band=0.0):
     """Spring forces (kN/m) with a given state: a frozen slot's, and the held states' tangent.
 
     OPEN carries nothing; SLIP carries fn_trial and the Mohr-Coulomb limit
@@ -134,10 +155,10 @@ def forces_in_state(fn_trial, fs_trial, prop: dict, failed, state, band=0.0):
     solver does not accept a sub-step whose blocks do not balance with the
     law's forces).
     """
-    bonded = prop["bonded"] & ~failed
-    c = jnp.where(failed, 0.0, prop["cohesion"])
+    bonded = prop.bonded & ~failed
+    c = jnp.where(failed, 0.0, prop.cohesion)
     fn = jnp.where(state == OPEN, 0.0, fn_trial)
-    limit = jnp.maximum(c + fn * prop["tanphi"], 0.0)
+    limit = jnp.maximum(c + fn * prop.tanphi, 0.0)
     capped = (state == SLIP) | (~bonded & (jnp.abs(fs_trial) > limit + band))
     fs = jnp.where(state == OPEN, 0.0, jnp.where(capped, jnp.sign(fs_trial) * limit, fs_trial))
     return fn, fs

@@ -21,10 +21,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdem.core._contact import broad_phase, narrow_phase
+from jaxdem.core._contact import Slots, broad_phase, narrow_phase
 from jaxdem.core.compile_cache import on_disk
 from jaxdem.core.kinematics import b_rows, point_row, scatter_pairs
-from jaxdem.core.laws import slot_properties
+from jaxdem.core.laws import SlotLaw, slot_properties
 from jaxdem.core.state import OPEN, STICK, Loads, Model, State
 
 
@@ -49,15 +49,15 @@ def make_loads(model: Model, force, water_x=None, water_y=None, bolt_active=None
     return loads if from_jax else jax.device_put(loads)
 
 
-def water_force(model: Model, geo, prop, water_x, water_y, scale=1.0):
+def water_force(model: Model, geo: Slots, prop: SlotLaw, water_x, water_y, scale=1.0):
     """Pore-pressure force on each joint slot, gamma_w (y_table(x) - y) x share (kN/m).
 
     Hydrostatic below the table, zero above it; none on intact bonds and walls.
     """
-    p = geo["point"]
+    p = geo.point
     head = jnp.interp(p[:, 0], water_x, water_y) - p[:, 1]
-    on_joint = geo["active"] & ~prop["bonded"] & ~model.joint_intact[geo["joint"]]
-    return jnp.where(on_joint, scale * model.gamma_w * jnp.maximum(head, 0.0) * geo["share"], 0.0)
+    on_joint = geo.active & ~prop.bonded & ~model.joint_intact[geo.joint]
+    return jnp.where(on_joint, scale * model.gamma_w * jnp.maximum(head, 0.0) * geo.share, 0.0)
 
 
 @on_disk("preload")
@@ -76,9 +76,9 @@ def in_situ_preload(model: Model, state: State, loads: Loads, sigma, surface_y, 
     sigma_yy; "uniform": ``sigma`` = (sxx, syy, sxy).
     """
     pairs, count, cell_full = broad_phase(model, state.verts, state.capacity, state.alive)
-    geo = narrow_phase(model, state.verts, state.centroid, pairs)
+    geo, _ = narrow_phase(model, state.verts, state.centroid, pairs)
     prop = slot_properties(model, geo)
-    p, n, t = geo["point"], geo["normal"], geo["tangent"]
+    p, n, t = geo.point, geo.normal, geo.tangent
 
     def traction(x):
         if mode == "gravity":
@@ -88,34 +88,34 @@ def in_situ_preload(model: Model, state: State, loads: Loads, sigma, surface_y, 
             sxx, syy, sxy = (jnp.broadcast_to(sigma[k], x[:, 0].shape) for k in range(3))
         return sxx * n[:, 0] + sxy * n[:, 1], sxy * n[:, 0] + syy * n[:, 1]
 
-    (tx0, ty0), (tx1, ty1) = traction(p), traction(geo["far_point"])
+    (tx0, ty0), (tx1, ty1) = traction(p), traction(geo.far_point)
     tx, ty = (2.0 * tx0 + tx1) / 3.0, (2.0 * ty0 + ty1) / 3.0
-    touching = geo["active"] & (geo["gap"] <= model.touch_tol)
+    touching = geo.active & (geo.gap <= model.touch_tol)
     # Faces in contact carry the in-situ traction; a corner touching a face
     # (a cell corner on a boundary wall, a hanging node) is a point of a
     # tessellation and carries none, nor do nearly parallel faces that meet at
     # one end only (a sliver between them), else the state would not be in
     # equilibrium.
-    loaded = touching & ~geo["corner"] & (geo["far_gap"] <= model.touch_tol)
+    loaded = touching & ~geo.corner & (geo.far_gap <= model.touch_tol)
     pw = water_force(model, geo, prop, loads.water_x, loads.water_y) if model.has_water else 0.0
-    fn0 = jnp.where(loaded, (tx * n[:, 0] + ty * n[:, 1]) * geo["share"] - pw, 0.0)
-    fs = jnp.where(loaded, -(tx * t[:, 0] + ty * t[:, 1]) * geo["share"], 0.0)
+    fn0 = jnp.where(loaded, (tx * n[:, 0] + ty * n[:, 1]) * geo.share - pw, 0.0)
+    fs = jnp.where(loaded, -(tx * t[:, 0] + ty * t[:, 1]) * geo.share, 0.0)
     shape = state.fs.shape
     stress = state.stress
     if model.ndof == 6:
         # Each deformable block starts with the stress its contact forces and
         # boundary tractions imply, (1/A) sum r (x) F: exactly in equilibrium.
         every = jnp.ones(model.n_blocks, bool)
-        rows = lambda v: b_rows(every, geo["a"], geo["b"], p, p, v, state.centroid, 6)  # noqa: E731
+        rows = lambda v: b_rows(every, geo.a, geo.b, p, p, v, state.centroid, 6)  # noqa: E731
         f_row = rows(n) * (fn0 + pw)[:, None] - rows(t) * fs[:, None]
-        virial = (scatter_pairs(model.n_blocks, geo["a"], geo["b"], f_row)[:, 3:]
+        virial = (scatter_pairs(model.n_blocks, geo.a, geo.b, f_row)[:, 3:]
                   + loads.force[:, 3:])
         stress = virial / model.area[:, None]
     new = dataclasses.replace(
         state, pairs=pairs, fn0=fn0.reshape(shape), fn=fn0.reshape(shape), fs=fs.reshape(shape),
-        failed=(geo["gap"] > model.touch_tol).reshape(shape), edge=geo["edge"].reshape(shape),
+        failed=(geo.gap > model.touch_tol).reshape(shape), edge=geo.edge.reshape(shape),
         cstate=jnp.where(touching, STICK, OPEN).astype(jnp.int32).reshape(shape),
-        present=geo["active"].reshape(shape), stress=stress)
+        present=geo.active.reshape(shape), stress=stress)
     return new, (count > state.capacity) | cell_full
 
 

@@ -168,9 +168,8 @@ def _sub_tangents(model: Model, state: State, loads: Loads, sub: Sub, pairs, pri
     tunnel this cut a solve with 6 sensitivities from 1.77 to 1.46 plain solves.
     """
     N, V = model.n_blocks, model.n_vertices
-    S = sub.geo["active"].shape[0]
+    S = sub.geo.active.shape[0]
     C = -(-S // active_share)
-    geo_keys = ("a", "b", "edge", "own_edge", "halved", "joint", "active", "corner")
     slot_fields = ("geo", "prop", "Bn", "Bs", "fs_old", "fn0", "failed", "pw")
 
     def rebuilt(mf, sf, lf):
@@ -179,18 +178,18 @@ def _sub_tangents(model: Model, state: State, loads: Loads, sub: Sub, pairs, pri
                 dataclasses.replace(loads, **lf))
 
     def compact():
-        sid = jnp.nonzero(sub.geo["active"], size=C, fill_value=S)[0]
+        sid = jnp.nonzero(sub.geo.active, size=C, fill_value=S)[0]
         at = jnp.minimum(sid, S - 1)
-        chosen = {k: sub.geo[k][at] for k in geo_keys}
-        chosen["vertex"] = (at % V).astype(jnp.int32)
+        # The slots' choices (the geometry's values are evaluated again below).
+        chosen = jax.tree.map(lambda v: v[at], sub.geo)
+        vertex = (at % V).astype(jnp.int32)
 
         def part(mf, sf, lf):
             m, s, ld = rebuilt(mf, sf, lf)
             free = m.free & s.alive
             mdl = dataclasses.replace(m, free=free)
-            hist = {k: v.reshape(-1)[at] for k, v in remap_history(s, pairs, N).items()}
-            geo = {k: chosen[k] for k in geo_keys}
-            geo.update(slot_geometry(mdl, s.verts, s.centroid, chosen))
+            hist = jax.tree.map(lambda v: v.reshape(-1)[at], remap_history(s, pairs, N))
+            geo = slot_geometry(mdl, s.verts, s.centroid, chosen, vertex)
             geo, slots, _ = slot_fields_of(mdl, s, ld, geo, hist)
             return floats_of(Sub(geo=geo, **slots, **block_fields_of(m, s, ld, free)))
 
@@ -207,7 +206,7 @@ def _sub_tangents(model: Model, state: State, loads: Loads, sub: Sub, pairs, pri
         _, lin = jax.linearize(lambda *f: floats_of(prepare_substep(*rebuilt(*f))[1]), *primals)
         return jax.vmap(lin)(*tangents)
 
-    return jax.lax.cond(jnp.sum(sub.geo["active"]) <= C, compact, whole)
+    return jax.lax.cond(jnp.sum(sub.geo.active) <= C, compact, whole)
 
 
 def _named_floats(sub: Sub) -> list:
@@ -236,8 +235,8 @@ def substep_tangent(model: Model, state: State, loads: Loads, dmodel, dstate, dl
     # (face, state) are integers, with no derivative. The forward sub-step iterates
     # on the primal; the derivatives of its data are those of the active slots
     # alone (:func:`_sub_tangents`).
-    mdl, sub, st0, pairs, need = prepare_substep(model, state, loads)
-    forward = newton_and_commit(mdl, state, sub, st0, pairs, need, warm)
+    mdl, sub, st0, pairs, found = prepare_substep(model, state, loads)
+    forward = newton_and_commit(mdl, state, sub, st0, pairs, found, warm)
     new_state, du, converged = forward[0], forward[1], forward[2].converged
     held = new_state.cstate.reshape(-1)
     all_held = jnp.ones(held.shape, bool)
@@ -262,7 +261,7 @@ def substep_tangent(model: Model, state: State, loads: Loads, dmodel, dstate, dl
         band = jax.lax.stop_gradient(force_scales(mdl, sb)[1])
         ev = evaluate(mdl, sb, x, all_held, held, held, band)
         new, _, snap = commit_substep(mdl, s, sb, pairs, x, ev)
-        return (ev["R"], _fields(new, STATE_FLOATS), {k: snap[k] for k in SNAPSHOT_FLOATS}), ev
+        return (ev.R, _fields(new, STATE_FLOATS), {k: snap[k] for k in SNAPSHOT_FLOATS}), ev
 
     # Linearised apart in the parameters (at the converged du) and in du: each
     # evaluates only its own tangent paths, where one linearisation in all four

@@ -163,8 +163,8 @@ def _two_blocks(shift):
     move = jnp.zeros_like(state.centroid).at[0, 0].set(shift)
     verts, centroid = state.verts + move[:, None, :], state.centroid + move
     pairs, _, _ = broad_phase(model, verts, state.capacity, state.alive)
-    geo = narrow_phase(model, verts, centroid, pairs)
-    act = np.asarray(geo["active"])
+    geo, _ = narrow_phase(model, verts, centroid, pairs)
+    act = np.asarray(geo.active)
     return {k: np.asarray(v)[act] for k, v in geo.items()}, model
 
 
@@ -262,8 +262,8 @@ def test_a_corner_falling_onto_a_corner_stops_at_it():
     assert bool(newton.clipped) and not bool(newton.converged)
     # The next detection gives the apex its spring: it is a touching slot now.
     pairs, _, _ = broad_phase(model, new.verts, new.capacity, new.alive)
-    geo = narrow_phase(model, new.verts, new.centroid, pairs)
-    assert np.any(np.asarray(geo["active"]) & (np.asarray(geo["a"]) == 1))
+    geo, _ = narrow_phase(model, new.verts, new.centroid, pairs)
+    assert np.any(np.asarray(geo.active) & (np.asarray(geo.a) == 1))
 
 
 def test_a_corner_that_misses_the_corner_falls_a_whole_step():
@@ -313,11 +313,11 @@ def test_a_corner_that_passed_into_an_obtuse_node_gets_its_spring():
     new, _, newton, _, _, _ = _one_substep(model, state)
     assert bool(newton.clipped) and not bool(newton.converged)
     pairs, _, _ = broad_phase(model, new.verts, new.capacity, new.alive)
-    geo = narrow_phase(model, new.verts, new.centroid, pairs)
+    geo, _ = narrow_phase(model, new.verts, new.centroid, pairs)
     apex = np.asarray(new.verts)[1, 0]
-    point = np.asarray(geo["point"])
+    point = np.asarray(geo.point)
     at_apex = np.linalg.norm(point - apex, axis=1) < 1e-9
-    assert np.any(np.asarray(geo["active"]) & at_apex & (np.asarray(geo["a"]) == 1))
+    assert np.any(np.asarray(geo.active) & at_apex & (np.asarray(geo.a) == 1))
     # With that spring the next sub-steps move it (it stands on a point, and tips off
     # the apex), where every step had been cut at once; and no point of it goes deeper
     # into the roof than the pass (plus its spring's compression, under a millimetre).
