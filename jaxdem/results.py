@@ -289,13 +289,13 @@ def block_stress(n_blocks, area, centroid, snap) -> np.ndarray:
     force on the block; the minus sign makes compression positive.
     Returns (n_blocks, 3): sxx, syy, sxy.
     """
-    act = snap["active"]
-    p, n = snap["point"][act], snap["normal"][act]
+    act = snap.active
+    p, n = snap.point[act], snap.normal[act]
     # The kernels' face tangent t and outward normal n satisfy n = (t_y, -t_x).
     t = np.stack([-n[:, 1], n[:, 0]], axis=1)
-    F = snap["fn"][act, None] * n - snap["fs"][act, None] * t
+    F = snap.fn[act, None] * n - snap.fs[act, None] * t
     out = np.zeros((len(area), 2, 2))
-    for blk, sign in ((snap["a"][act], 1.0), (snap["b"][act], -1.0)):
+    for blk, sign in ((snap.a[act], 1.0), (snap.b[act], -1.0)):
         r = p - centroid[blk]
         outer = sign * r[:, :, None] * F[:, None, :]
         np.add.at(out, blk, outer)
@@ -419,7 +419,7 @@ def initial_contacts(snap: dict, act: np.ndarray, ref: Any) -> dict[str, np.ndar
     for p, side, v in zip(*np.nonzero(present), strict=True):
         A, B = (pairs[p, 0], pairs[p, 1]) if side == 0 else (pairs[p, 1], pairs[p, 0])
         known[(int(A), int(B), int(v))] = (int(cstate[p, side, v]), float(fn[p, side, v]))
-    a, b = np.asarray(snap["a"]).reshape(-1), np.asarray(snap["b"]).reshape(-1)
+    a, b = np.asarray(snap.a).reshape(-1), np.asarray(snap.b).reshape(-1)
     vertex = np.arange(a.size) % V
     idx = np.nonzero(act.reshape(-1))[0]
     found = [known.get((int(a[k]), int(b[k]), int(vertex[k])), (-1, np.nan)) for k in idx]
@@ -448,7 +448,7 @@ def stage_frame(scene, model, layout, state, ref, info, bolt_active, name: str, 
     ``bolt_records`` (:func:`scene_bolts`).
     """
     nr = layout.n_rock
-    snap = {k: np.asarray(v) for k, v in info["snapshot"].items()}
+    snap = jax.tree.map(np.asarray, info["snapshot"])
     u, rot = np.asarray(state.u)[:nr], np.asarray(state.rot)[:nr]
     if ref is not None:
         u, rot = u - np.asarray(ref.u)[:nr], rot - np.asarray(ref.rot)[:nr]
@@ -457,15 +457,15 @@ def stage_frame(scene, model, layout, state, ref, info, bolt_active, name: str, 
     else:
         stress = block_stress(nr, np.asarray(model.area), np.asarray(state.centroid), snap)
     verts, nv = np.asarray(state.verts), np.asarray(model.nv)
-    act = snap["active"]
+    act = snap.active
     return {
         "name": name, "index": index, "increments": increments,
         "final_vertices": [verts[i, : nv[i]] for i in range(nr)],
         "u": np.column_stack([u[:, :2], rot]), "stress": stress,
         "fixed": ~np.asarray(model.free)[:nr], "excavated": ~np.asarray(state.alive)[:nr],
-        "contacts": {k: snap[key][act] for k, key in (("points", "point"), ("normals", "normal"),
-                                                      ("state", "state"), ("fn", "fn"),
-                                                      ("fs", "fs"))},
+        "contacts": {k: getattr(snap, key)[act]
+                     for k, key in (("points", "point"), ("normals", "normal"), ("state", "state"),
+                                    ("fn", "fn"), ("fs", "fs"))},
         "bolts": bolt_anchors(model, state, layout),
         "bolt_records": scene_bolts(scene, layout, state, bolt_active),
     }
@@ -506,7 +506,7 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
     the blocks removed as loose (``Result.loose_blocks``).
     """
     nr = layout.n_rock
-    snap = {k: np.asarray(v) for k, v in info["snapshot"].items()}
+    snap = jax.tree.map(np.asarray, info["snapshot"])
     status = Status.of(info["status"])
     travel = np.asarray(info["travel"])[:nr]
     max_disp = float(model.max_displacement)
@@ -554,12 +554,12 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
          **({"excavated": True} if not alive[i] else {})}
         for i in range(nr)
     ]
-    act = snap["active"]
-    st = snap["state"][act]
+    act = snap.active
+    st = snap.state[act]
     contacts = {"total": int(act.sum()), "open": int((st == OPEN).sum()),
                 "slipping": int((st == SLIP).sum())}
-    bal = {k: np.asarray(v) for k, v in info["balance"].items()}
-    equilibrium = {"applied": bal["applied"].tolist(), "reaction": bal["reaction"].tolist(),
+    bal = jax.tree.map(np.asarray, info["balance"])
+    equilibrium = {"applied": bal.applied.tolist(), "reaction": bal.reaction.tolist(),
                    "imbalance": last["imbalance"]}
     monitors = monitor_values(layout, state, ref)
     stages = []
@@ -613,8 +613,8 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
         "excavated": ~alive,
         "loose": np.isin(np.arange(nr), [b["id"] for b in loose]),
         "walls": layout.walls,
-        "contacts": {"points": snap["point"][act], "normals": snap["normal"][act], "state": st,
-                     "fn": snap["fn"][act], "fs": snap["fs"][act],
+        "contacts": {"points": snap.point[act], "normals": snap.normal[act], "state": st,
+                     "fn": snap.fn[act], "fs": snap.fs[act],
                      **initial_contacts(snap, act, ref)},
         "monitors": {name: m["points"] for name, m in layout.monitors.items()},
         "stress": stress,

@@ -448,8 +448,8 @@ class _Driver:
         rec = dict(stage=stage, step=k, load_factor=k / n, status=self.status,
                    iterations=int(info["iterations"]), substeps=int(info["substeps"]),
                    residual=float(info["residual"]), imbalance=global_imbalance(bal),
-                   overlap=float(bal["overlap"]), overlap_rel=float(bal["overlap_rel"]),
-                   strength_excess=float(bal["excess"]),
+                   overlap=float(bal.overlap), overlap_rel=float(bal.overlap_rel),
+                   strength_excess=float(bal.excess),
                    slip=float(jm["slip"]), slip_rel=float(jm["slip_rel"]),
                    slip_blocks=[int(x) for x in np.asarray(jm["slip_blocks"])],
                    opening=float(jm["opening"]),
@@ -499,9 +499,9 @@ class _Driver:
         if not moving.any():
             return None
         snap = self.info["snapshot"]
-        closed = (np.asarray(snap["active"]) & (np.asarray(snap["state"]) != OPEN)).reshape(-1)
-        a = np.asarray(snap["a"]).reshape(-1)[closed]
-        b = np.asarray(snap["b"]).reshape(-1)[closed]
+        closed = (np.asarray(snap.active) & (np.asarray(snap.state) != OPEN)).reshape(-1)
+        a = np.asarray(snap.a).reshape(-1)[closed]
+        b = np.asarray(snap.b).reshape(-1)[closed]
         if np.any(moving[a] != moving[b]):
             return None  # a contact in the way: the blocks slide or rotate on the rock
         group = np.arange(N)

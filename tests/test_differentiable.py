@@ -15,6 +15,7 @@ from scenes import jointed_tunnel, stack
 
 import jaxdem
 from jaxdem.core.laws import equivalent_stiffness, intact_stiffness
+from jaxdem.core.state import SNAPSHOT_FLOATS
 from jaxdem.differentiable import Problem
 from jaxdem.scene import SceneError, parse_scene
 
@@ -136,7 +137,7 @@ def test_active_slots_alone_give_the_whole_detections_derivatives(monkeypatch):
 
     def tangents_and_active(share):
         forward, derivatives = substep_tangent(*args, active_share=share)
-        return derivatives, forward[5]["active"]  # the sub-step's contact snapshot
+        return derivatives, forward[5].active  # the sub-step's contact snapshot
 
     (dstate, dsnap), active = jax.jit(lambda: tangents_and_active(ACTIVE_SHARE))()
     assert 0 < int(jnp.sum(active)) <= S // ACTIVE_SHARE  # the gathered path is the one taken
@@ -150,9 +151,9 @@ def test_active_slots_alone_give_the_whole_detections_derivatives(monkeypatch):
     assert float(jnp.max(jnp.abs(dstate["centroid"]))) > 0
     # The snapshot's forces everywhere; its points and normals where a slot is active
     # (elsewhere they carry no force, and the release masks them out).
-    for k in dsnap:
+    for k in SNAPSHOT_FLOATS:
         where = slice(None) if k in ("fn", "fs", "pw") else active
-        close(dsnap[k][:, where], dsnap_w[k][:, where])
+        close(getattr(dsnap, k)[:, where], getattr(dsnap_w, k)[:, where])
 
 
 def test_uniform_in_situ_stress_derivatives_match_central_differences():

@@ -81,7 +81,7 @@ from jaxdem.core.kinematics import (
 )
 from jaxdem.core.laws import slot_properties
 from jaxdem.core.loads import water_force
-from jaxdem.core.state import OPEN, SLIP, STICK, Loads, Model, State
+from jaxdem.core.state import OPEN, SLIP, STICK, Balance, Loads, Model, Snapshot, State
 
 
 def force_scales(model: Model, sub: Sub):
@@ -615,8 +615,9 @@ def block_fields_of(model: Model, state: State, loads: Loads, free) -> dict:
 def commit_substep(model: Model, state: State, sub: Sub, pairs, du, ev: Springs):
     """Move the blocks by du and commit the springs' forces and states.
 
-    Returns (state, balance, snapshot): the new state, the global balance of
-    the free blocks and the contact snapshot (forces at the sub-step's points).
+    Returns (state, balance, snapshot): the new state, the global balance of the free
+    blocks (:class:`jaxdem.core.state.Balance`) and the contact snapshot (forces at the
+    sub-step's points, :class:`jaxdem.core.state.Snapshot`).
     """
     N, D = model.n_blocks, model.ndof
     geo, free = sub.geo, sub.free
@@ -666,9 +667,9 @@ def commit_substep(model: Model, state: State, sub: Sub, pairs, du, ev: Springs)
                           jnp.abs(sub.fn0) + jnp.abs(sub.fs_old) + jnp.abs(sub.pw))
     carried = jnp.max(jnp.where(active, carried, 0.0), initial=0.0)
     carried = jnp.maximum(carried, 1e-3 * model.f_ref)
-    admissible = _admissibility(model, sub, ev)
-    balance = dict(
-        **admissible,
+    overlap, overlap_rel, excess = _admissibility(model, sub, ev)
+    balance = Balance(
+        overlap=overlap, overlap_rel=overlap_rel, excess=excess,
         applied=jnp.stack([sub.load[:, 0].sum(), sub.load[:, 1].sum(), moment(sub.load).sum()]),
         reaction=jnp.stack([reaction[:, 0].sum(), reaction[:, 1].sum(), moment(reaction).sum()]),
         scale=jnp.maximum(jnp.maximum(jnp.sum(jnp.linalg.norm(reaction[:, :2], axis=1)),
@@ -676,13 +677,14 @@ def commit_substep(model: Model, state: State, sub: Sub, pairs, du, ev: Springs)
                           carried),
     )
     joint = active & ~sub.prop.bonded & ~model.joint_intact[geo.joint]
-    snapshot = dict(point=geo.point, normal=geo.normal, a=a, b=b, active=active,
-                    fn=ev.fn, fs=ev.fs, pw=ev.total_n - ev.fn, state=st, joint=joint)
+    snapshot = Snapshot(point=geo.point, normal=geo.normal, a=a, b=b, active=active,
+                        fn=ev.fn, fs=ev.fs, pw=ev.total_n - ev.fn, state=st, joint=joint)
     return new_state, balance, snapshot
 
 
-def _admissibility(model: Model, sub: Sub, ev: Springs) -> dict:
-    """How far the sub-step's answer is from admissible (:data:`jaxdem.core.status.OVERLAP_TOL`).
+def _admissibility(model: Model, sub: Sub, ev: Springs):
+    """How far the sub-step's answer is from admissible (:data:`jaxdem.core.status.OVERLAP_TOL`):
+    (overlap, overlap_rel, excess).
 
     ``overlap`` (m): the deepest interpenetration at a contact; ``overlap_rel``: the
     same relative to the smaller block's size; ``excess``: the largest excess of a
@@ -706,9 +708,8 @@ def _admissibility(model: Model, sub: Sub, ev: Springs) -> dict:
     scale = jnp.maximum(jnp.maximum(scale[a], scale[b]), model.f_ref * 1e-3)
     excess = jnp.where(active & ~bonded & (ev.state != OPEN), jnp.maximum(over, 0.0) / scale,
                        0.0)
-    return dict(overlap=jnp.max(depth, initial=0.0),
-                overlap_rel=jnp.max(depth / size, initial=0.0),
-                excess=jnp.max(excess, initial=0.0))
+    return (jnp.max(depth, initial=0.0), jnp.max(depth / size, initial=0.0),
+            jnp.max(excess, initial=0.0))
 
 
 def substep(model: Model, state: State, loads: Loads, warm=False):

@@ -40,8 +40,8 @@ import jax.numpy as jnp
 from jaxdem.core._substep import substep
 from jaxdem.core.compile_cache import on_disk
 from jaxdem.core.kinematics import block_travel, rotate_vectors
-from jaxdem.core.sensitivities import SNAPSHOT_FLOATS, substep_tangent
-from jaxdem.core.state import Loads, Model, State
+from jaxdem.core.sensitivities import substep_tangent
+from jaxdem.core.state import Balance, Loads, Model, Snapshot, State, float_part
 from jaxdem.core.status import (
     IMBALANCE_FACTOR,
     OVERLAP_TOL,
@@ -109,7 +109,8 @@ class Progress(NamedTuple):
     (:func:`jaxdem.core._substep.commit_substep`); ``pairs_needed``, ``cell_full``,
     ``slots_full`` and ``touch_needed`` what the contact list needed; ``approximate`` a
     sub-step ended without equilibrium.
-    With sensitivities, ``dstate`` and ``dsnapshot`` their derivatives (else None).
+    With sensitivities, ``dstate`` and ``dsnapshot`` their derivatives (else None;
+    ``dsnapshot`` has the snapshot's float fields alone: :func:`jaxdem.core.state.float_part`).
     """
 
     state: State
@@ -120,15 +121,15 @@ class Progress(NamedTuple):
     iterations: jax.Array
     travel: jax.Array
     residual: jax.Array
-    balance: dict
-    snapshot: dict
+    balance: Balance
+    snapshot: Snapshot
     pairs_needed: jax.Array
     cell_full: jax.Array
     slots_full: jax.Array
     touch_needed: jax.Array
     approximate: jax.Array
     dstate: Any = None
-    dsnapshot: Any = None
+    dsnapshot: Snapshot | None = None
 
 
 def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=None, skip=None):
@@ -174,8 +175,8 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
         # the whole in balance): else the status says which check failed.
         done = newton.converged & small & ~need.new_failures
         status = jnp.select(
-            [overflow, ~newton.finite, done & (balance["overlap_rel"] > OVERLAP_TOL),
-             done & (balance["excess"] > STRENGTH_TOL),
+            [overflow, ~newton.finite, done & (balance.overlap_rel > OVERLAP_TOL),
+             done & (balance.excess > STRENGTH_TOL),
              done & (global_imbalance_jax(balance) > IMBALANCE_FACTOR * model.tol), done,
              jnp.max(travel) > model.max_displacement,
              (stuck >= 3) | (substeps >= model.max_substeps)],
@@ -203,7 +204,7 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
     if tangents is not None:
         dstate0 = tangents["state"]
         p = jax.tree.leaves(tangents["state"])[0].shape[0]
-        dsnap0 = {k: jnp.zeros((p,) + snap0[k].shape, dtype) for k in SNAPSHOT_FLOATS}
+        dsnap0 = jax.tree.map(lambda s: jnp.zeros((p,) + s.shape, dtype), float_part(snap0))
     # Counters int32, as the body makes them (a weakly typed jnp.array(0) that the body
     # turns into int32 makes JAX trace the body twice).
     zero = jnp.zeros((), jnp.int32)
@@ -236,16 +237,16 @@ def _joint_motion(model: Model, start: State, end: State, snap) -> dict:
     relative to the smaller block's size, which the command line warns about
     above :data:`jaxdem.core.status.LARGE_SLIP`.
     """
-    p, n = snap["point"], snap["normal"]
+    p, n = snap.point, snap.normal
     t = jnp.stack([-n[:, 1], n[:, 0]], axis=1)
 
     def moved(i):
         back = rotate_vectors(p - end.centroid[i], -(end.rot[i] - start.rot[i]))
         return p - (start.centroid[i] + back)
 
-    a, b = snap["a"], snap["b"]
+    a, b = snap.a, snap.b
     rel = moved(a) - moved(b)
-    joint = snap["joint"]
+    joint = snap.joint
     slip = jnp.where(joint, jnp.abs(jnp.sum(rel * t, axis=1)), 0.0)
     opening = jnp.where(joint, jnp.sum(rel * n, axis=1), 0.0)
     size = jnp.where(model.free, model.radius, jnp.inf)

@@ -25,7 +25,7 @@ from jaxdem.core._contact import Slots, broad_phase, narrow_phase
 from jaxdem.core.compile_cache import on_disk
 from jaxdem.core.kinematics import b_rows, point_row, scatter_pairs
 from jaxdem.core.laws import SlotLaw, slot_properties
-from jaxdem.core.state import OPEN, STICK, Loads, Model, State
+from jaxdem.core.state import OPEN, STICK, Loads, Model, Snapshot, State
 
 
 def make_loads(model: Model, force, water_x=None, water_y=None, bolt_active=None,
@@ -119,7 +119,7 @@ def in_situ_preload(model: Model, state: State, loads: Loads, sigma, surface_y, 
     return new, (count > state.capacity) | cell_full
 
 
-def release_forces(centroid, snap, removed, ndof):
+def release_forces(centroid, snap: Snapshot, removed, ndof):
     """Forces (N, D) that the blocks being removed exert on the others, from a contact snapshot.
 
     The force of each contact on a remaining block is (fn + pw) n - fs t at the
@@ -127,10 +127,10 @@ def release_forces(centroid, snap, removed, ndof):
     generalised force directly.
     """
     N = centroid.shape[0]
-    act = snap["active"]
-    a, b, p, n = snap["a"], snap["b"], snap["point"], snap["normal"]
+    act = snap.active
+    a, b, p, n = snap.a, snap.b, snap.point, snap.normal
     t = jnp.stack([-n[:, 1], n[:, 0]], axis=1)
-    F = (snap["fn"] + snap["pw"])[:, None] * n - snap["fs"][:, None] * t
+    F = (snap.fn + snap.pw)[:, None] * n - snap.fs[:, None] * t
     out = jnp.zeros((N, ndof), F.dtype)
     for on, by, sign in ((a, b, 1.0), (b, a, -1.0)):
         sel = act & removed[by] & ~removed[on]

@@ -1,7 +1,7 @@
 """Forward-mode sensitivities of a sub-step, the in-situ preload and the release.
 
 Owns the lists of smooth fields (:data:`SMOOTH_MODEL`, :data:`STATE_FLOATS`,
-:data:`LOAD_FLOATS`, :data:`SNAPSHOT_FLOATS`), :func:`substep_tangent` (each
+:data:`LOAD_FLOATS`, :data:`jaxdem.core.state.SNAPSHOT_FLOATS`), :func:`substep_tangent` (each
 converged sub-step differentiated implicitly with its contact states held),
 :func:`_sub_tangents` (the derivatives of a sub-step's data, from its active
 slots alone),
@@ -42,7 +42,7 @@ from jaxdem.core._substep import (
     slot_fields_of,
 )
 from jaxdem.core.loads import in_situ_preload, release_forces
-from jaxdem.core.state import Loads, Model, State
+from jaxdem.core.state import SNAPSHOT_FLOATS, Loads, Model, Snapshot, State, float_part
 
 # Model fields that scene parameters change smoothly (see jaxdem.differentiable).
 SMOOTH_MODEL = ("joint_kn", "joint_ks", "joint_c", "joint_t", "joint_tanphi", "kn_inv", "ks_inv",
@@ -50,7 +50,6 @@ SMOOTH_MODEL = ("joint_kn", "joint_ks", "joint_c", "joint_t", "joint_tanphi", "k
 STATE_FLOATS = ("verts", "centroid", "u", "rot", "fs", "fn", "fn0", "bolt_force", "bolt_rest",
                 "strain", "stress")
 LOAD_FLOATS = ("force", "water_y")
-SNAPSHOT_FLOATS = ("point", "normal", "fn", "fs", "pw")
 
 
 def _fields(obj, names) -> dict:
@@ -261,7 +260,7 @@ def substep_tangent(model: Model, state: State, loads: Loads, dmodel, dstate, dl
         band = jax.lax.stop_gradient(force_scales(mdl, sb)[1])
         ev = evaluate(mdl, sb, x, all_held, held, held, band)
         new, _, snap = commit_substep(mdl, s, sb, pairs, x, ev)
-        return (ev.R, _fields(new, STATE_FLOATS), {k: snap[k] for k in SNAPSHOT_FLOATS}), ev
+        return (ev.R, _fields(new, STATE_FLOATS), float_part(snap)), ev
 
     # Linearised apart in the parameters (at the converged du) and in du: each
     # evaluates only its own tangent paths, where one linearisation in all four
@@ -311,12 +310,13 @@ def preload_tangent(model: Model, state: State, loads: Loads, args, dmodel, dloa
 
 
 @functools.partial(jax.jit, static_argnames=("ndof",))
-def release_with_tangent(centroid, snap, removed, dcentroid, dsnap, ndof):
+def release_with_tangent(centroid, snap: Snapshot, removed, dcentroid, dsnap: Snapshot, ndof):
     """:func:`jaxdem.core.loads.release_forces` (N, D) and its derivatives (p, N, D)."""
     def rel(c, floats):
-        return release_forces(c, dict(snap, **floats), removed, ndof)
+        merged = snap._replace(**{k: getattr(floats, k) for k in SNAPSHOT_FLOATS})
+        return release_forces(c, merged, removed, ndof)
 
-    floats = {k: snap[k] for k in SNAPSHOT_FLOATS}
+    floats = float_part(snap)
     value = rel(centroid, floats)
     tangent = jax.vmap(lambda dc, ds: jax.jvp(rel, (centroid, floats), (dc, ds))[1])(
         dcentroid, dsnap)

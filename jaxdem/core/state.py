@@ -17,6 +17,7 @@ Shapes use these letters:
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
 
 import jax
 import numpy as np
@@ -253,6 +254,54 @@ class State:
     strain: jax.Array
     stress: jax.Array
     capacity: int
+
+
+class Snapshot(NamedTuple):
+    """The contacts at the end of a sub-step, per slot (S,) (the forces at the sub-step's
+    points: :func:`jaxdem.core._substep.commit_substep`): ``point`` and ``normal`` (S, 2),
+    blocks ``a`` (the vertex's) and ``b`` (the face's), ``active``, forces ``fn``, ``fs``
+    (kN/m, compression positive) and ``pw`` (the water's), ``state`` (OPEN, STICK, SLIP)
+    and ``joint`` (a joint contact: not an intact bond, not a wall). Its derivatives
+    (:data:`SNAPSHOT_FLOATS` alone, the rest None): :func:`float_part`."""
+
+    point: jax.Array
+    normal: jax.Array
+    a: jax.Array
+    b: jax.Array
+    active: jax.Array
+    fn: jax.Array
+    fs: jax.Array
+    pw: jax.Array
+    state: jax.Array
+    joint: jax.Array
+
+
+#: The fields of a :class:`Snapshot` that have derivatives (the sensitivities carry them).
+SNAPSHOT_FLOATS = ("point", "normal", "fn", "fs", "pw")
+
+
+def float_part(snap: Snapshot) -> Snapshot:
+    """``snap`` with its :data:`SNAPSHOT_FLOATS` alone, the other fields None."""
+    return Snapshot(**{k: getattr(snap, k) if k in SNAPSHOT_FLOATS else None
+                       for k in Snapshot._fields})
+
+
+class Balance(NamedTuple):
+    """The global balance of the free blocks at the end of a sub-step, and how far its
+    answer is from admissible (:func:`jaxdem.core._substep.commit_substep`): ``overlap``
+    (m, the deepest interpenetration), ``overlap_rel`` (the same relative to the smaller
+    block's size), ``excess`` (the largest excess of a contact's forces over its
+    strength, relative to its blocks' force scale), ``applied`` and ``reaction`` (3,)
+    (Fx, Fy kN/m, M kN m/m about the origin: the loads, and the forces from blocks
+    without degrees of freedom), ``scale`` (kN/m, the forces in play that the imbalance
+    is relative to: :func:`jaxdem.core.status.global_imbalance`)."""
+
+    overlap: jax.Array
+    overlap_rel: jax.Array
+    excess: jax.Array
+    applied: jax.Array
+    reaction: jax.Array
+    scale: jax.Array
 
 
 def empty_history(n_blocks: int, capacity: int, n_vertices: int, dtype) -> dict:

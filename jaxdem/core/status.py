@@ -111,8 +111,8 @@ class Status(str, enum.Enum):
 
 def global_imbalance_jax(balance):
     """:func:`global_imbalance` on the device (a traced scalar)."""
-    f = balance["applied"][:2] + balance["reaction"][:2]
-    return jnp.linalg.norm(f) / jnp.maximum(balance["scale"], jnp.finfo(f.dtype).tiny)
+    f = balance.applied[:2] + balance.reaction[:2]
+    return jnp.linalg.norm(f) / jnp.maximum(balance.scale, jnp.finfo(f.dtype).tiny)
 
 
 def global_imbalance(balance) -> float:
@@ -125,6 +125,6 @@ def global_imbalance(balance) -> float:
     force carried (no load and no net reaction: a self-balanced in-situ
     stress; see :func:`jaxdem.core._substep.commit_substep`).
     """
-    applied = np.asarray(balance["applied"])[:2]  # sliced on the host: no program to compile
-    reaction = np.asarray(balance["reaction"])[:2]
-    return float(np.linalg.norm(applied + reaction) / max(float(balance["scale"]), 1e-300))
+    applied = np.asarray(balance.applied)[:2]  # sliced on the host: no program to compile
+    reaction = np.asarray(balance.reaction)[:2]
+    return float(np.linalg.norm(applied + reaction) / max(float(balance.scale), 1e-300))
