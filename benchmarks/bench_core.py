@@ -129,17 +129,17 @@ def run_one(n: int, dtype: str, repeats: int) -> dict:
         jax.block_until_ready(new.verts)
         times.append(time.perf_counter() - t0 - dt)
     solve_s = statistics.median(times)
-    status = Status.of(info["status"]).label
+    status = Status.of(info.status).label
     from jaxdem.results import monitor_values
 
     uy = -monitor_values(layout, new)["top"]["displacement"][1]
     ref = closed_form_settlement(rows)
-    imbalance = global_imbalance(info["balance"])
+    imbalance = global_imbalance(info.balance)
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return dict(blocks=layout.n_rock, dtype=dtype, solver=model.linear_solver,
                 pairs=n_pairs, build_s=build_s, detect_compile_s=detect_compile_s,
                 detect_s=detect_s, increment_compile_s=compile_s, increment_s=solve_s,
-                iterations=int(info["iterations"]), status=status,
+                iterations=int(info.iterations), status=status,
                 settlement_err=abs(uy - ref) / ref, imbalance=imbalance, peak_mb=peak_mb)
 
 

@@ -500,25 +500,25 @@ class _BatchDriver:
             if self.ready is not None:
                 self.ready.set()
             new, info = fn(self.model, self.fields, self.state, loads, skip)
-            status = np.asarray(info["status"])
+            status = np.asarray(info.status)
             self.compile_s += dt
             self.solve_s += time.perf_counter() - t1 - dt
             over = (status == Status.CAPACITY_OVERFLOW.code) & self.live
             if not over.any():
                 break
             self.model = model_mod.grown(self.model,
-                                         bool(np.asarray(info["cell_full"])[over].any()),
-                                         bool(np.asarray(info["slots_full"])[over].any()),
-                                         int(np.asarray(info["touch_needed"])[over].max()))
-            need = int(np.asarray(info["pairs_needed"])[over].max())
+                                         bool(np.asarray(info.cell_full)[over].any()),
+                                         bool(np.asarray(info.slots_full)[over].any()),
+                                         int(np.asarray(info.touch_needed)[over].max()))
+            need = int(np.asarray(info.pairs_needed)[over].max())
             cap = self.state.capacity
             if need > cap:
                 self.state = _grow(self.state, model_mod.bucket(max(2 * cap, need)))
         self.state, self.info = new, info
-        self.iterations += np.where(self.live, np.asarray(info["iterations"]), 0)
+        self.iterations += np.where(self.live, np.asarray(info.iterations), 0)
         found = np.nonzero(self.live & (status == Status.MECHANISM.code))[0]
         if found.size:
-            travel = np.asarray(info["travel"])[:, :self.layout.n_rock]
+            travel = np.asarray(info.travel)[:, :self.layout.n_rock]
             limit = np.broadcast_to(np.asarray(self.fields.get(
                 "max_displacement", self.model.max_displacement), float), (self.C,))
             for c in found:
@@ -534,7 +534,7 @@ class _BatchDriver:
         N, D = self.model.n_blocks, self.model.ndof
         if not removed.any() or self.info is None:
             return np.zeros((self.C, N, D))
-        return np.asarray(_release_lanes(self.state.centroid, self.info["snapshot"],
+        return np.asarray(_release_lanes(self.state.centroid, self.info.snapshot,
                                          jnp.asarray(removed), D))
 
     def preload(self, scene, base):

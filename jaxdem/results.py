@@ -448,7 +448,7 @@ def stage_frame(scene, model, layout, state, ref, info, bolt_active, name: str, 
     ``bolt_records`` (:func:`scene_bolts`).
     """
     nr = layout.n_rock
-    snap = jax.tree.map(np.asarray, info["snapshot"])
+    snap = jax.tree.map(np.asarray, info.snapshot)
     u, rot = np.asarray(state.u)[:nr], np.asarray(state.rot)[:nr]
     if ref is not None:
         u, rot = u - np.asarray(ref.u)[:nr], rot - np.asarray(ref.rot)[:nr]
@@ -506,9 +506,9 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
     the blocks removed as loose (``Result.loose_blocks``).
     """
     nr = layout.n_rock
-    snap = jax.tree.map(np.asarray, info["snapshot"])
-    status = Status.of(info["status"])
-    travel = np.asarray(info["travel"])[:nr]
+    snap = jax.tree.map(np.asarray, info.snapshot)
+    status = Status.of(info.status)
+    travel = np.asarray(info.travel)[:nr]
     max_disp = float(model.max_displacement)
     last = records[-1]
     overlap, overlap_rel = block_overlap(model, state, nr + len(layout.walls))
@@ -558,7 +558,7 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
     st = snap.state[act]
     contacts = {"total": int(act.sum()), "open": int((st == OPEN).sum()),
                 "slipping": int((st == SLIP).sum())}
-    bal = jax.tree.map(np.asarray, info["balance"])
+    bal = jax.tree.map(np.asarray, info.balance)
     equilibrium = {"applied": bal.applied.tolist(), "reaction": bal.reaction.tolist(),
                    "imbalance": last["imbalance"]}
     monitors = monitor_values(layout, state, ref)

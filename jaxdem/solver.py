@@ -441,19 +441,19 @@ class _Driver:
         self.solve_s += time.perf_counter() - t1 - dt
         self.info = info
         if tangents is not None:
-            self.dstate = info["dstate"]
-            self.approximate |= bool(info["approximate"])
-        self.status = Status.of(info["status"])
-        bal, jm = info["balance"], info["joints"]
+            self.dstate = info.dstate
+            self.approximate |= bool(info.approximate)
+        self.status = Status.of(info.status)
+        bal, jm = info.balance, info.joints
         rec = dict(stage=stage, step=k, load_factor=k / n, status=self.status,
-                   iterations=int(info["iterations"]), substeps=int(info["substeps"]),
-                   residual=float(info["residual"]), imbalance=global_imbalance(bal),
+                   iterations=int(info.iterations), substeps=int(info.substeps),
+                   residual=float(info.residual), imbalance=global_imbalance(bal),
                    overlap=float(bal.overlap), overlap_rel=float(bal.overlap_rel),
                    strength_excess=float(bal.excess),
-                   slip=float(jm["slip"]), slip_rel=float(jm["slip_rel"]),
-                   slip_blocks=[int(x) for x in np.asarray(jm["slip_blocks"])],
-                   opening=float(jm["opening"]),
-                   opening_blocks=[int(x) for x in np.asarray(jm["opening_blocks"])])
+                   slip=float(jm.slip), slip_rel=float(jm.slip_rel),
+                   slip_blocks=[int(x) for x in np.asarray(jm.slip_blocks)],
+                   opening=float(jm.opening),
+                   opening_blocks=[int(x) for x in np.asarray(jm.opening_blocks)])
         if released is not None:
             rec["released"] = released
         self.records.append(rec)
@@ -493,12 +493,12 @@ class _Driver:
             return None
         nr, N = self.layout.n_rock, self.model.n_blocks
         moving = np.zeros(N, bool)
-        moving[:nr] = np.asarray(self.info["travel"])[:nr] > 0.1 * float(
+        moving[:nr] = np.asarray(self.info.travel)[:nr] > 0.1 * float(
             self.model.max_displacement)
         moving &= np.asarray(self.state.alive)
         if not moving.any():
             return None
-        snap = self.info["snapshot"]
+        snap = self.info.snapshot
         closed = (np.asarray(snap.active) & (np.asarray(snap.state) != OPEN)).reshape(-1)
         a = np.asarray(snap.a).reshape(-1)[closed]
         b = np.asarray(snap.b).reshape(-1)[closed]
@@ -522,12 +522,12 @@ class _Driver:
         out = np.zeros((1 + self.data.p, N, D))
         if not removed.any() or self.info is None:
             return out
-        snap, rm = self.info["snapshot"], jnp.asarray(removed)
+        snap, rm = self.info.snapshot, jnp.asarray(removed)
         if self.dstate is None:
             out[0] = np.asarray(release_forces_jit(self.state.centroid, snap, rm, D))
             return out
         value, tangent = release_with_tangent(self.state.centroid, snap, rm,
-                                              self.dstate["centroid"], self.info["dsnapshot"], D)
+                                              self.dstate["centroid"], self.info.dsnapshot, D)
         out[0], out[1:] = np.asarray(value), np.asarray(tangent)
         return out
 
@@ -565,7 +565,7 @@ def run_increment(model: Model, state: State, loads: Loads, tangents: dict | Non
     Returns (model, state, info, compile_s): the model changes only when a
     grid cell capacity grew. Growing recompiles; nothing is ever truncated.
     With ``tangents`` (see :func:`jaxdem.core.increment.increment_tangent`) the state's derivatives
-    are carried along (``info["dstate"]``). ``quick``: compile for a brief run
+    are carried along (``info.dstate``). ``quick``: compile for a brief run
     (:func:`jaxdem.core.compile_cache.compiled_program`).
     """
     compile_s = 0.0
@@ -577,11 +577,11 @@ def run_increment(model: Model, state: State, loads: Loads, tangents: dict | Non
             fn, dt = compiled_program(increment_tangent, model, state, loads, tangents)
             new, info = fn(model, state, loads, tangents)
         compile_s += dt
-        if Status.of(info["status"]) != Status.CAPACITY_OVERFLOW:
+        if Status.of(info.status) != Status.CAPACITY_OVERFLOW:
             return model, new, info, compile_s
-        model = model_mod.grown(model, bool(info["cell_full"]), bool(info["slots_full"]),
-                                int(info["touch_needed"]))
-        need = int(info["pairs_needed"])
+        model = model_mod.grown(model, bool(info.cell_full), bool(info.slots_full),
+                                int(info.touch_needed))
+        need = int(info.pairs_needed)
         if need > state.capacity:
             capacity = model_mod.bucket(max(2 * state.capacity, int(1.3 * need) + 16))
             state = grow_capacity(state, capacity)

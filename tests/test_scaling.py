@@ -191,7 +191,7 @@ def test_iterative_path_vmaps():
     lams = jnp.array([0.5, 1.0])
     batch = jax.vmap(lambda lam: make_loads(model, lam * model.f_ext))(lams)
     states, info = jax.vmap(increment, in_axes=(None, None, 0))(model, state, batch)
-    assert (np.asarray(info["status"]) == Status.CONVERGED.code).all()
+    assert (np.asarray(info.status) == Status.CONVERGED.code).all()
     dense = dataclasses.replace(model, linear_solver="dense")
     for k, lam in enumerate(lams):
         s1, _ = increment(dense, state, make_loads(model, lam * model.f_ext))

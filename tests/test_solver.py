@@ -119,8 +119,8 @@ def test_overflow_is_flagged_not_truncated():
     model, state, _ = model_mod.build(scene)
     tiny = _capacity_one(state)
     _, info = increment(model, tiny, make_loads(model, model.f_ext))
-    assert Status.of(info["status"]) == Status.CAPACITY_OVERFLOW
-    assert int(info["pairs_needed"]) >= 4
+    assert Status.of(info.status) == Status.CAPACITY_OVERFLOW
+    assert int(info.pairs_needed) >= 4
 
 
 def test_float32_matches_float64():
@@ -161,7 +161,7 @@ def test_dense_and_iterative_solvers_agree():
     _, s_dense, _, _ = solver.run_increment(model, state, loads)
     model_cg = dataclasses.replace(model, linear_solver="cg")
     _, s_cg, info, _ = solver.run_increment(model_cg, state, loads)
-    assert Status.of(info["status"]) == Status.CONVERGED
+    assert Status.of(info.status) == Status.CONVERGED
     np.testing.assert_allclose(np.asarray(s_cg.u), np.asarray(s_dense.u), rtol=1e-7, atol=1e-14)
 
 
@@ -174,7 +174,7 @@ def test_increment_vmaps_over_load_factors():
     for k, lam in enumerate(lams):
         s1, _ = increment(model, state, make_loads(model, lam * model.f_ext))
         np.testing.assert_allclose(np.asarray(states.u[k]), np.asarray(s1.u), rtol=1e-9, atol=1e-15)
-    assert (np.asarray(info["status"]) == Status.CONVERGED.code).all()
+    assert (np.asarray(info.status) == Status.CONVERGED.code).all()
 
 
 def test_compiled_programs_are_bounded(monkeypatch):

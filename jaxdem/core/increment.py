@@ -51,16 +51,55 @@ from jaxdem.core.status import (
 )
 
 
+class JointMotion(NamedTuple):
+    """The largest joint slip and opening of an increment (:func:`_joint_motion`): ``slip``
+    (m), ``slip_rel`` (relative to the smaller block's size), ``slip_blocks`` (2,) the
+    blocks where it is; ``opening`` (m), ``opening_blocks`` (2,)."""
+
+    slip: jax.Array
+    slip_rel: jax.Array
+    slip_blocks: jax.Array
+    opening: jax.Array
+    opening_blocks: jax.Array
+
+
+class Report(NamedTuple):
+    """What an increment reports to the host (:func:`increment`).
+
+    ``status`` (a :class:`jaxdem.core.status.Status` code), ``substeps``, ``iterations``
+    (Newton's, summed), ``travel`` (N,) the path length of each block in the increment
+    (m), ``residual`` (the last sub-step's, relative), ``balance`` and ``snapshot`` (the
+    last sub-step's: :class:`jaxdem.core.state.Balance`, :class:`jaxdem.core.state.Snapshot`),
+    ``pairs_needed``, ``cell_full``, ``slots_full`` and ``touch_needed`` (what the
+    contact list needed: the host grows what overflowed), ``approximate`` (a sub-step
+    ended without equilibrium, cut by the step length: see :func:`increment_tangent`),
+    ``joints`` (:class:`JointMotion`); with sensitivities ``dstate`` and ``dsnapshot``
+    (else None).
+    """
+
+    status: jax.Array
+    substeps: jax.Array
+    iterations: jax.Array
+    travel: jax.Array
+    residual: jax.Array
+    balance: Balance
+    snapshot: Snapshot
+    pairs_needed: jax.Array
+    cell_full: jax.Array
+    slots_full: jax.Array
+    touch_needed: jax.Array
+    approximate: jax.Array
+    joints: JointMotion
+    dstate: dict | None = None
+    dsnapshot: Snapshot | None = None
+
+
 @on_disk("increment")
 @jax.jit
 def increment(model: Model, state: State, loads: Loads):
     """One load increment: geometry sub-steps until equilibrium under ``loads``.
 
-    Returns (state, info): info holds ``status`` (a Status value), ``iterations``
-    (Newton iterations), ``substeps``, ``residual`` (relative), ``travel``
-    (N,) path length of each block in this increment (m), ``balance``, the
-    final contact ``snapshot`` and ``approximate`` (a sub-step ended without
-    equilibrium, cut by the step length: see :func:`increment_tangent`).
+    Returns (state, :class:`Report`).
     """
     return substeps_to_equilibrium(model, state, loads)
 
@@ -74,8 +113,8 @@ def increment_tangent(model: Model, state: State, loads: Loads, tangents: dict):
     :data:`jaxdem.core.sensitivities.SMOOTH_MODEL`),
     ``loads`` ({field: (p, ...)} for :data:`jaxdem.core.sensitivities.LOAD_FLOATS`) and ``state``
     ({field: (p, ...)} for :data:`jaxdem.core.sensitivities.STATE_FLOATS`): the derivatives of those
-    inputs with respect to each parameter. ``info`` then also holds ``dstate``,
-    the derivatives of the new state, and ``dsnapshot``, those of the final
+    inputs with respect to each parameter. The :class:`Report` then also holds
+    ``dstate``, the derivatives of the new state, and ``dsnapshot``, those of the final
     contact snapshot.
 
     Each sub-step that ends in equilibrium, R(du*; geometry, history,
@@ -86,7 +125,7 @@ def increment_tangent(model: Model, state: State, loads: Loads, tangents: dict):
     through exactly, so the result is the derivative of the discrete solution
     wherever no state changes under a small change of theta. A sub-step cut
     short by the step length (a large motion on the way to equilibrium) is
-    held fixed, and ``info["approximate"]`` says that one was.
+    held fixed, and the report's ``approximate`` says that one was.
     """
     return substeps_to_equilibrium(model, state, loads, tangents)
 
@@ -218,16 +257,16 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
                     approximate=jnp.array(False),
                     dstate=dstate0, dsnapshot=dsnap0)
     c = jax.lax.while_loop(lambda c: c.status < 0, body, init)
-    info = {k: getattr(c, k) for k in ("status", "substeps", "iterations", "travel", "residual",
-                                       "balance", "snapshot", "pairs_needed", "cell_full",
-                                       "slots_full", "touch_needed", "approximate")}
-    info["joints"] = _joint_motion(model, state, c.state, c.snapshot)
-    if tangents is not None:
-        info.update(dstate=c.dstate, dsnapshot=c.dsnapshot)
-    return c.state, info
+    report = Report(status=c.status, substeps=c.substeps, iterations=c.iterations,
+                    travel=c.travel, residual=c.residual, balance=c.balance, snapshot=c.snapshot,
+                    pairs_needed=c.pairs_needed, cell_full=c.cell_full, slots_full=c.slots_full,
+                    touch_needed=c.touch_needed, approximate=c.approximate,
+                    joints=_joint_motion(model, state, c.state, c.snapshot),
+                    dstate=c.dstate, dsnapshot=c.dsnapshot)
+    return c.state, report
 
 
-def _joint_motion(model: Model, start: State, end: State, snap) -> dict:
+def _joint_motion(model: Model, start: State, end: State, snap: Snapshot) -> JointMotion:
     """Largest joint slip and opening (m) of an increment, and the blocks where they are.
 
     At each joint contact of the final geometry (open or closed, walls included,
@@ -253,5 +292,6 @@ def _joint_motion(model: Model, start: State, end: State, snap) -> dict:
     size = jnp.minimum(size[a], size[b])
     size = jnp.where(jnp.isfinite(size), size, 1.0)
     i, j = jnp.argmax(slip), jnp.argmax(opening)
-    return dict(slip=slip[i], slip_rel=slip[i] / size[i], slip_blocks=jnp.stack([a[i], b[i]]),
-                opening=jnp.maximum(opening[j], 0.0), opening_blocks=jnp.stack([a[j], b[j]]))
+    return JointMotion(slip=slip[i], slip_rel=slip[i] / size[i],
+                       slip_blocks=jnp.stack([a[i], b[i]]), opening=jnp.maximum(opening[j], 0.0),
+                       opening_blocks=jnp.stack([a[j], b[j]]))

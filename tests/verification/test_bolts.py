@@ -230,7 +230,7 @@ def _drive(scene, loads_x):
         force[0, 0] = fx
         loads = make_loads(model, force, bolt_active=np.ones(1, bool))
         model, state, info, _ = solver.run_increment(model, state, loads)
-        out.append((Status.of(info["status"]), float(state.u[0, 0]),
+        out.append((Status.of(info.status), float(state.u[0, 0]),
                     float(state.bolt_force[0]), int(state.bolt_state[0])))
     return out
 
