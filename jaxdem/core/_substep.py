@@ -582,10 +582,8 @@ def slot_fields_of(mdl: Model, state: State, loads: Loads, geo: Slots, hist: His
     st0 = jnp.where(same, hist.cstate,
                     jnp.where(geo.gap <= mdl.touch_tol, STICK, OPEN)).astype(jnp.int32)
     D = mdl.ndof
-    Bn = b_rows(mdl.free, geo.a, geo.b, geo.point, geo.point, geo.normal,
-                state.centroid, D)
-    Bs = b_rows(mdl.free, geo.a, geo.b, geo.point, geo.point, geo.tangent,
-                state.centroid, D)
+    Bn = b_rows(mdl.free, geo.a, geo.b, geo.point, geo.point, geo.normal, state.centroid, D)
+    Bs = b_rows(mdl.free, geo.a, geo.b, geo.point, geo.point, geo.tangent, state.centroid, D)
     if mdl.has_water:
         pw = water_force(mdl, geo, prop, loads.water_x, loads.water_y, loads.water_scale)
     else:
@@ -604,10 +602,10 @@ def block_fields_of(model: Model, state: State, loads: Loads, free) -> dict:
         # first acts (bolt_rest 0 until then), and grows with its plastic elongation.
         length0 = jnp.linalg.norm(d0, axis=1)
         rest = jnp.where(state.bolt_rest > 0, state.bolt_rest, length0)
-        bolt = Bolts(a=bg.a, b=bg.b, f_old=state.bolt_force, active=alive_b, d0=d0,
-                    ra=bg.point_a - state.centroid[bg.a],
-                    rb=bg.point_b - state.centroid[bg.b], rest=rest,
-                    free_a=free[bg.a], free_b=free[bg.b])
+        bolt = Bolts(a=bg.a, b=bg.b, free_a=free[bg.a], free_b=free[bg.b],
+                     f_old=state.bolt_force, active=alive_b, d0=d0,
+                     ra=bg.point_a - state.centroid[bg.a], rb=bg.point_b - state.centroid[bg.b],
+                     rest=rest)
     return dict(bolt=bolt, load=jnp.where(free[:, None], loads.force, 0.0), free=free,
                 stress=state.stress, Kc=cell_stiffness(model, free) if model.ndof == 6 else None)
 
