@@ -106,8 +106,8 @@ def _tangent_and_difference(mdl, sub, du, frozen, held, band, rng, size, exact=F
     free = np.asarray(sub.free)[:, None]
     v = rng.normal(0.0, 1.0, du.shape) * free
     h = 1e-7 * size
-    R_plus = np.asarray(at(du + h * jnp.asarray(v))["R"]).reshape(-1)
-    R_minus = np.asarray(at(du - h * jnp.asarray(v))["R"]).reshape(-1)
+    R_plus = np.asarray(at(du + h * jnp.asarray(v)).R).reshape(-1)
+    R_minus = np.asarray(at(du - h * jnp.asarray(v)).R).reshape(-1)
     return K @ v.reshape(-1), -(R_plus - R_minus) / (2 * h)
 
 

@@ -6,15 +6,12 @@ jax.numpy, so they jit, vmap and differentiate.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 
 from jaxdem.core.state import OPEN, SLIP, STICK, WALL_ROLLER, Model
-
-if TYPE_CHECKING:
-    from jaxdem.core._contact import Slots
 
 
 class SlotLaw(NamedTuple):
@@ -56,8 +53,9 @@ def equivalent_stiffness(h1, h2, k1_inv, k2_inv, k0_inv):
     return 1.0 / (h1 * k1_inv + h2 * k2_inv + k0_inv)
 
 
-def slot_properties(model: Model, geo: Slots) -> SlotLaw:
-    """Spring stiffness (kN/m per m) and strength of every slot.
+def slot_properties(model: Model, geo) -> SlotLaw:
+    """Spring stiffness (kN/m per m) and strength of every slot of ``geo``, the
+    detection's :class:`jaxdem.core._contact.Slots` (or any subset of them).
 
     A slot's spring is k * share (share = its part of the effective length Le).
     Contacts with a rigid wall have no joint term and are bonded (elastic, no

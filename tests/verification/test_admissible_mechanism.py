@@ -16,6 +16,7 @@ separating-axis depth of :func:`jaxdem.geometry.overlap_depths` on hand-worked p
 import functools
 from pathlib import Path
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -165,7 +166,7 @@ def _two_blocks(shift):
     pairs, _, _ = broad_phase(model, verts, state.capacity, state.alive)
     geo, _ = narrow_phase(model, verts, centroid, pairs)
     act = np.asarray(geo.active)
-    return {k: np.asarray(v)[act] for k, v in geo.items()}, model
+    return jax.tree.map(lambda v: np.asarray(v)[act], geo), model
 
 
 def test_a_tip_gone_in_along_a_shared_line_bears_on_the_face_it_crossed():
@@ -177,15 +178,15 @@ def test_a_tip_gone_in_along_a_shared_line_bears_on_the_face_it_crossed():
     lean = np.array([-1.0, 0.5]) / np.hypot(1.0, 0.5)  # Y's leaning face's normal
     slant = np.array([1.0, 0.55]) / np.hypot(1.0, 0.55)  # X's slanting face's normal
     for point, normal in (([0.05, 0.0], lean), ([0.0, 0.0], slant)):
-        k = np.flatnonzero(np.all(np.isclose(g["point"], point), axis=1))
+        k = np.flatnonzero(np.all(np.isclose(g.point, point), axis=1))
         assert len(k) == 1
-        np.testing.assert_allclose(g["normal"][k[0]], normal, atol=1e-12)
-        assert g["gap"][k[0]] == pytest.approx(-0.05 * abs(normal[0]), rel=1e-9)
+        np.testing.assert_allclose(g.normal[k[0]], normal, atol=1e-12)
+        assert g.gap[k[0]] == pytest.approx(-0.05 * abs(normal[0]), rel=1e-9)
 
 
 def test_the_same_blocks_touching_have_no_overlap():
     g, _ = _two_blocks(0.0)
-    assert np.all(g["gap"] > -1e-12)
+    assert np.all(g.gap > -1e-12)
 
 
 # ------------------------------------------------------------------ overlap_depths
