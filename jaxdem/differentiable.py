@@ -169,7 +169,7 @@ class Problem:
             if want is not None and name in want:
                 found[name] = self._monitors(d)
 
-        # One solve of many: its programs keep the full optimisation.
+        # One solve of many: its programs are not compiled quick (level 0).
         d = run(self.scene, model, self.state, self.layout, data, stage_end=stage_end, quick=False)
         info = dict(status=d.status, approximate=d.approximate)
         if d.status != Status.CONVERGED:

@@ -71,20 +71,24 @@ COMPILE_TIMES = {"lower_s": 0.0, "compile_s": 0.0}
 compilation (or loading from the persistent cache), s."""
 
 
-CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 1}
 """XLA options of jaxdem's large programs on a CPU. Without the new fusion emitters
 XLA compiled the increment in 0.6 to 0.7 of the time (10.3 -> 6.1 s dense, 10.7 ->
 7.7 s cg, 20 x 20 grid; 14 -> 9 s, incline) and the solve was no slower, with
-bitwise the same answers (BENCHMARKS.md, "Time to answer"). A jaxlib that does
-not know an option compiles without them."""
+bitwise the same answers (BENCHMARKS.md, "Time to answer"). LLVM's optimisation level
+1 (XLA's default is 2): the wet seed example 4's whole cold run 6.01 -> 5.58 s
+(medians of 5 alternating runs), seed example 2's 10.3 -> 9.9 s, for a solve 0-5%
+slower (3% on the 70 x 70 grid), the same iterations and the monitors within 3e-11
+(BENCHMARKS.md, "Fifteenth session"). A jaxlib that does not know an option compiles
+without them."""
 
 
 QUICK_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
-"""XLA options added on a CPU for a program that runs briefly (``quick``): LLVM's
-optimisation level 0. It compiles the increment in 0.4-0.6 of the time and runs it
-2-3 times slower (BENCHMARKS.md, "Time to answer"), which wins wherever the solve
-takes less than the compilation saves: a single solve of a small scene, or a small
-batch."""
+"""XLA options added on a CPU for a program that runs briefly (``quick``), over
+:data:`CPU_COMPILER_OPTIONS`: LLVM's optimisation level 0. It compiles the increment
+in 0.4-0.6 of the time and runs it 2-3 times slower (BENCHMARKS.md, "Time to
+answer"), which wins wherever the solve takes less than the compilation saves: a
+single solve of a small scene, or a small batch."""
 
 QUICK_WORK = 2_560
 """Largest work (blocks of the size class x increments, x samples for a batch) of a
@@ -93,7 +97,7 @@ solve compiled ``quick``: the demo (512 x 5 increments) and the dry seed example
 LLVM's level 0 the demo's cold run took 4.8-5.0 s against 6.8 (compile 3.1-3.3 s against
 5.3-5.4) and its warm run 1.95 against 1.46 (a solve of 0.6-0.75 s against 0.30); the
 wet seed example 4 would have taken 5.3 cold but 2.5 warm (solve 1.5 s against 0.46:
-it iterates more an increment), so it stays at full optimisation (BENCHMARKS.md,
+it iterates more an increment), so it stays at level 1 (BENCHMARKS.md,
 "Thirteenth session"). A solve with sensitivities, one of many in a back-analysis, is
 never quick."""
 
