@@ -76,7 +76,7 @@ CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optim
 XLA compiled the increment in 0.6 to 0.7 of the time (10.3 -> 6.1 s dense, 10.7 ->
 7.7 s cg, 20 x 20 grid; 14 -> 9 s, incline) and the solve was no slower, with
 bitwise the same answers (BENCHMARKS.md, "Time to answer"). LLVM's optimisation level
-1 (XLA's default is 2): the wet seed example 4's whole cold run 6.01 -> 5.58 s
+1 (XLA's default is 3): the wet seed example 4's whole cold run 6.01 -> 5.58 s
 (medians of 5 alternating runs), seed example 2's 10.3 -> 9.9 s, for a solve 0-5%
 slower (3% on the 70 x 70 grid), the same iterations and the monitors within 3e-11
 (BENCHMARKS.md, "Fifteenth session"). A jaxlib that does not know an option compiles
