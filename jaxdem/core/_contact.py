@@ -370,9 +370,9 @@ def _slot_geometry(model: Model, xv, x_next, x_prev, cx, cy, q, n, t, L_e, l_out
                     far_point=xv + jnp.where(parallel, s_far - s0, 0.0)[..., None] * t)
 
 
-def _slot_finish(model: Model, g: _Bearing, halved, X, Y, widths):
-    """(share, h_a, h_b): share halved where both sides see the point; h_a, h_b with
-    their floors.
+def _slot_finish(model: Model, g: _Bearing | _PairSlots, halved, X, Y, widths):
+    """(share, h_a, h_b) from g's share, h_x and h_y: share halved where both sides see
+    the point; h_a, h_b with their floors.
 
     A centroid on or behind the contact line (a corner reaching round the
     end of a face) would give h = 0 and, against a rigid wall, an infinite
