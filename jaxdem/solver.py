@@ -563,7 +563,7 @@ def run_increment(model: Model, state: State, loads: Loads, tangents: dict | Non
     """One increment with capacity growth: on overflow, grow and redo from ``state``.
 
     Returns (model, state, info, compile_s), info the increment's
-    :class:`jaxdem.core.increment.Report`: the model changes only when a
+    report (:class:`jaxdem.core.increment.Progress`): the model changes only when a
     grid cell capacity grew. Growing recompiles; nothing is ever truncated.
     With ``tangents`` (see :func:`jaxdem.core.increment.increment_tangent`) the state's derivatives
     are carried along (``info.dstate``). ``quick``: compile for a brief run

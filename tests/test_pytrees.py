@@ -14,7 +14,7 @@ from scenes import jointed_tunnel
 from jaxdem.core import model as model_mod
 from jaxdem.core._springs import Springs, evaluate
 from jaxdem.core._substep import force_scales, newton_and_commit, prepare_substep
-from jaxdem.core.increment import Report, increment
+from jaxdem.core.increment import Progress, increment
 from jaxdem.core.loads import make_loads
 from jaxdem.scene import parse_scene
 
@@ -51,5 +51,5 @@ def test_a_substeps_data_and_outputs_hold_no_dict(tunnel):
 def test_the_increments_report_holds_no_dict(tunnel):
     model, state, loads = tunnel
     new, report = increment(model, state, loads)
-    assert isinstance(report, Report) and report.dstate is None
+    assert isinstance(report, Progress) and report.dstate is None and report.joints is not None
     assert _dict_paths(report) == []

@@ -63,43 +63,13 @@ class JointMotion(NamedTuple):
     opening_blocks: jax.Array
 
 
-class Report(NamedTuple):
-    """What an increment reports to the host (:func:`increment`).
-
-    ``status`` (a :class:`jaxdem.core.status.Status` code), ``substeps``, ``iterations``
-    (Newton's, summed), ``travel`` (N,) the path length of each block in the increment
-    (m), ``residual`` (the last sub-step's, relative), ``balance`` and ``snapshot`` (the
-    last sub-step's: :class:`jaxdem.core.state.Balance`, :class:`jaxdem.core.state.Snapshot`),
-    ``pairs_needed``, ``cell_full``, ``slots_full`` and ``touch_needed`` (what the
-    contact list needed: the host grows what overflowed), ``approximate`` (a sub-step
-    ended without equilibrium, cut by the step length: see :func:`increment_tangent`),
-    ``joints`` (:class:`JointMotion`); with sensitivities ``dstate`` and ``dsnapshot``
-    (else None).
-    """
-
-    status: jax.Array
-    substeps: jax.Array
-    iterations: jax.Array
-    travel: jax.Array
-    residual: jax.Array
-    balance: Balance
-    snapshot: Snapshot
-    pairs_needed: jax.Array
-    cell_full: jax.Array
-    slots_full: jax.Array
-    touch_needed: jax.Array
-    approximate: jax.Array
-    joints: JointMotion
-    dstate: dict | None = None
-    dsnapshot: Snapshot | None = None
-
-
 @on_disk("increment")
 @jax.jit
 def increment(model: Model, state: State, loads: Loads):
     """One load increment: geometry sub-steps until equilibrium under ``loads``.
 
-    Returns (state, :class:`Report`).
+    Returns (state, report): the report is the loop's :class:`Progress` at its end,
+    its ``state`` taken out (returned apart) and its ``joints`` in.
     """
     return substeps_to_equilibrium(model, state, loads)
 
@@ -113,7 +83,7 @@ def increment_tangent(model: Model, state: State, loads: Loads, tangents: dict):
     :data:`jaxdem.core.sensitivities.SMOOTH_MODEL`),
     ``loads`` ({field: (p, ...)} for :data:`jaxdem.core.sensitivities.LOAD_FLOATS`) and ``state``
     ({field: (p, ...)} for :data:`jaxdem.core.sensitivities.STATE_FLOATS`): the derivatives of those
-    inputs with respect to each parameter. The :class:`Report` then also holds
+    inputs with respect to each parameter. The report then also holds
     ``dstate``, the derivatives of the new state, and ``dsnapshot``, those of the final
     contact snapshot.
 
@@ -136,7 +106,9 @@ loop's shapes and its body share that trace; XLA inlines the call)."""
 
 
 class Progress(NamedTuple):
-    """The carry of an increment's loop of sub-steps (:func:`substeps_to_equilibrium`).
+    """The carry of an increment's loop of sub-steps (:func:`substeps_to_equilibrium`), and
+    at its end the increment's report to the host (``state`` None there: it is returned
+    apart; ``joints`` the :class:`JointMotion`, None in the loop).
 
     ``state`` the blocks and springs now; ``status`` the outcome's code (-1 while it goes
     on: :class:`jaxdem.core.status.Status`); ``substeps``, ``iterations`` (Newton's, summed)
@@ -146,13 +118,14 @@ class Progress(NamedTuple):
     ``travel`` (N,) each block's travel so far; ``residual`` the last sub-step's relative
     residual; ``balance`` and ``snapshot`` those of the last sub-step
     (:func:`jaxdem.core._substep.commit_substep`); ``pairs_needed``, ``cell_full``,
-    ``slots_full`` and ``touch_needed`` what the contact list needed; ``approximate`` a
-    sub-step ended without equilibrium.
+    ``slots_full`` and ``touch_needed`` what the contact list needed (the host grows what
+    overflowed); ``approximate`` a sub-step ended without equilibrium, cut by the step
+    length (see :func:`increment_tangent`).
     With sensitivities, ``dstate`` and ``dsnapshot`` their derivatives (else None;
     ``dsnapshot`` has the snapshot's float fields alone: :func:`jaxdem.core.state.float_part`).
     """
 
-    state: State
+    state: State | None
     status: jax.Array
     substeps: jax.Array
     stuck: jax.Array
@@ -169,6 +142,7 @@ class Progress(NamedTuple):
     approximate: jax.Array
     dstate: Any = None
     dsnapshot: Snapshot | None = None
+    joints: JointMotion | None = None
 
 
 def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=None, skip=None):
@@ -257,13 +231,7 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
                     approximate=jnp.array(False),
                     dstate=dstate0, dsnapshot=dsnap0)
     c = jax.lax.while_loop(lambda c: c.status < 0, body, init)
-    report = Report(status=c.status, substeps=c.substeps, iterations=c.iterations,
-                    travel=c.travel, residual=c.residual, balance=c.balance, snapshot=c.snapshot,
-                    pairs_needed=c.pairs_needed, cell_full=c.cell_full, slots_full=c.slots_full,
-                    touch_needed=c.touch_needed, approximate=c.approximate,
-                    joints=_joint_motion(model, state, c.state, c.snapshot),
-                    dstate=c.dstate, dsnapshot=c.dsnapshot)
-    return c.state, report
+    return c.state, c._replace(state=None, joints=_joint_motion(model, state, c.state, c.snapshot))
 
 
 def _joint_motion(model: Model, start: State, end: State, snap: Snapshot) -> JointMotion:
