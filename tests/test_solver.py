@@ -110,7 +110,7 @@ def test_capacity_overflow_grows_and_gives_the_same_answer():
     _, s_small, info_small, _ = solver.run_increment(model, small, loads)
     _, s_ref, info_ref, _ = solver.run_increment(model, ref_state, loads)
     assert s_small.capacity > 1
-    assert Status.of(info_small["status"]) == Status.CONVERGED
+    assert Status.of(info_small.status) == Status.CONVERGED
     np.testing.assert_allclose(np.asarray(s_small.u), np.asarray(s_ref.u), rtol=1e-10, atol=1e-15)
 
 
