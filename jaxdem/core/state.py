@@ -1,8 +1,11 @@
-"""Device data: the model (what does not change in a solve) and the state (what does).
+"""Device data: the model (what does not change in a solve) and the state (what does),
+the loads of an increment, and what a sub-step leaves for the host (its :class:`Balance`
+and contact :class:`Snapshot`).
 
-Both are frozen dataclasses registered as JAX pytrees. Array fields are leaves;
-sizes and switches that fix the compiled program are static (``meta``) fields,
-so changing one of them recompiles, which is how capacities grow.
+The first three are frozen dataclasses registered as JAX pytrees, the last two
+NamedTuples. Array fields are leaves; sizes and switches that fix the compiled program
+are static (``meta``) fields, so changing one of them recompiles, which is how
+capacities grow.
 
 Shapes use these letters:
   N  blocks, rock blocks first, then rigid boundary walls
