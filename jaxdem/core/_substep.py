@@ -2,7 +2,8 @@
 
 Owns :func:`prepare_substep` (contacts and their history at the current geometry:
 the :class:`jaxdem.core._springs.Sub`, from its slots' part :func:`slot_fields_of` and
-its blocks' part :func:`block_fields_of`), :func:`pack_slots` (the touching slots that
+its blocks' part :func:`block_fields_of`, and the :class:`Detection`; what a sub-step
+needed, :class:`Needs`), :func:`pack_slots` (the touching slots that
 the iteration works on), :func:`_newton` (the iteration on du),
 :func:`commit_substep` (move the blocks, commit the springs, global balance),
 :func:`_admissibility` and :func:`substep`, which chains them. The increment
