@@ -74,7 +74,7 @@ class Springs(NamedTuple):
     the springs' (and cells', bolts') forces, ``R`` the residual (load + internal on the
     free blocks), ``R_law`` the residual with the law's forces everywhere; ``stress`` (N, 3)
     of deformable cells (None for rigid blocks); of the bolts (nb, ..., None without):
-    ``bolt_force`` (kN/m), ``bolt_state`` (0 elastic, else yielded or slack),
+    ``bolt_force`` (kN/m), ``bolt_state`` (0 elastic; :func:`_bolt_law`'s codes),
     ``bolt_length`` (m), ``bolt_g``, ``bolt_H`` its gradient and Hessian in the
     anchors' motions, ``bolt_rows`` its forces on the blocks. What
     :func:`jaxdem.core._substep.commit_substep` reads of an evaluation on packed slots is
