@@ -63,6 +63,12 @@ class Result:
         (excavation name -> the fraction of its load released after each increment, for
         the excavations whose load the stage releases).
       moving_blocks: ids of the blocks that kept moving when a mechanism was found.
+      unbalanced_blocks: where the analysis stopped at the iteration limit, the free
+        blocks furthest out of balance at its last iteration (at most five, those beyond
+        the tolerance, the largest first): per block ``id``, ``centroid`` [x, y]
+        (initial, m), ``force`` (kN/m, the largest
+        of |Fx|, |Fy| and |M| / radius left unbalanced) and ``relative`` (that over the
+        block's force scale, its load or the largest force on it); else empty.
       loose_blocks: the small blocks that fell free into an opening and were removed
         (``solver.loose_blocks = "remove"``): per block ``id``, ``stage`` (the stage they
         fell in, which was then solved again without them), ``volume`` (m3 per m of
@@ -118,6 +124,7 @@ class Result:
     admissibility: dict[str, Any] = dataclasses.field(default_factory=dict)
     warnings: list[str] = dataclasses.field(default_factory=list)
     loose_blocks: list[dict[str, Any]] = dataclasses.field(default_factory=list)
+    unbalanced_blocks: list[dict[str, Any]] = dataclasses.field(default_factory=list)
 
     def __post_init__(self):
         self.status = Status(self.status)  # a label given as a plain string, too
@@ -141,6 +148,7 @@ class Result:
             "admissibility": self.admissibility,
             "warnings": self.warnings,
             "loose_blocks": self.loose_blocks,
+            "unbalanced_blocks": self.unbalanced_blocks,
         }
         return jsonable(out)
 
@@ -427,6 +435,25 @@ def initial_contacts(snap: dict, act: np.ndarray, ref: Any) -> dict[str, np.ndar
             "initial_fn": np.array([f[1] for f in found], float).reshape(n)}
 
 
+def _percent(x: float) -> str:
+    """0.0081 -> ``0.81%``, 0.41 -> ``41%``, 3.09 -> ``309%``."""
+    return f"{100 * x:.2g}%" if x < 1 else f"{100 * x:.0f}%"
+
+
+def unbalanced_blocks(info, tol: float, centroids) -> list[dict[str, Any]]:
+    """The blocks furthest out of balance at an increment's last iteration (``info``, the
+    increment's report :class:`jaxdem.core.increment.Progress`), those beyond the tolerance
+    ``tol`` relative to their force scale, the largest first: ``id``, ``centroid`` [x, y]
+    (initial, m: ``centroids``, one per rock block), ``force`` (kN/m) and ``relative``
+    (``Result.unbalanced_blocks``)."""
+    ids = np.asarray(info.unbalanced)
+    force = np.asarray(info.unbalanced_force)
+    rel = np.asarray(info.unbalanced_rel)
+    return [dict(id=int(i), centroid=[float(x) for x in centroids[i]], force=float(f),
+                 relative=float(r))
+            for i, f, r in zip(ids, force, rel, strict=True) if r > tol and i < len(centroids)]
+
+
 def moving_blocks(travel, max_displacement: float) -> list[int]:
     """The blocks of a mechanism: those that travelled more than a tenth of
     ``solver.max_displacement`` in the increment that found it (``travel``: (n,) m, the
@@ -527,6 +554,13 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
         message = f"{status.message} {len(records)} increments, stable."
     else:
         message = f"{status.message} Stopped in {where}."
+    unbalanced = (unbalanced_blocks(info, float(model.tol), layout.centroids[:nr])
+                  if status == Status.ITERATION_LIMIT else [])
+    if unbalanced:
+        message += " Out of balance: " + ", ".join(
+            f"block {b['id']} at ({b['centroid'][0]:.3g}, {b['centroid'][1]:.3g}) by "
+            f"{b['force']:.3g} kN/m ({_percent(b['relative'])} of the largest force on it)"
+            for b in unbalanced) + "."
     if loose:
         message += " " + _loose_sentence(loose)
 
@@ -630,7 +664,7 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
         message=message, monitors=monitors, blocks=blocks, contacts=contacts, bolts=bolts,
         stages=stages, moving_blocks=moving, equilibrium=equilibrium, timing=timing,
         geometry=geometry, history=hist, admissibility=admissibility, warnings=warnings,
-        loose_blocks=[dict(b) for b in loose],
+        loose_blocks=[dict(b) for b in loose], unbalanced_blocks=unbalanced,
     )
 
 

@@ -140,6 +140,9 @@ NEAR = 10.0
 LINE_SEARCH_HALVINGS = 8
 #: Armijo's sufficient decrease of the merit, per unit of step.
 ARMIJO = 1e-4
+#: How many of the blocks furthest out of balance a sub-step reports (:class:`Iterate`):
+#: where the analysis stops at the iteration limit, the result names them.
+UNBALANCED_NAMED = 5
 
 
 class Iterate(NamedTuple):
@@ -158,7 +161,12 @@ class Iterate(NamedTuple):
     failed :data:`RETRY_LIMIT` times (``fails``), in this sub-step, ``flat`` how many
     stalled iterations in a row left the residual as it was (to :data:`FLAT`),
     ``lost`` the slip-tangent step of such a flat stall did not reduce the residual in
-    this sub-step (a stall is then followed as a mechanism at once).
+    this sub-step (a stall is then followed as a mechanism at once). Per block, at the
+    last evaluation: ``unbalanced`` (K,) the K = min(:data:`UNBALANCED_NAMED`, N) free
+    blocks with the largest out-of-balance force relative to their force scale, largest
+    first, ``unbalanced_force`` (K,) that force (kN/m, measured as
+    :func:`jaxdem.core._springs.block_residual`) and ``unbalanced_rel`` (K,) the same
+    over the block's force scale (-1 for a block that is not free).
     """
 
     du: jax.Array
@@ -182,6 +190,9 @@ class Iterate(NamedTuple):
     lost: jax.Array
     flat: jax.Array
     fails: jax.Array
+    unbalanced: jax.Array
+    unbalanced_force: jax.Array
+    unbalanced_rel: jax.Array
 
 
 class Detection(NamedTuple):
@@ -237,6 +248,7 @@ def _newton(model: Model, sub: Sub, st0, warm=False):
     zeros_s = jnp.zeros(S, jnp.int32)
     step = block_steps(model)
     direct = model.linear_solver != "cg"
+    named = min(UNBALANCED_NAMED, N)
 
     def merit(ev, tol):
         return jnp.sum(jnp.where(sub.free, (block_residual(model, ev.R) / tol) ** 2, 0.0))
@@ -247,7 +259,9 @@ def _newton(model: Model, sub: Sub, st0, warm=False):
         scale_b = jnp.maximum(s0, block_scale(model, sub, ev))
         tol = model.tol * scale_b
         # Largest residual of a free block relative to its own tolerance.
-        rnorm = jnp.max(jnp.where(sub.free, block_residual(model, ev.R) / tol, 0.0))
+        r_block = block_residual(model, ev.R)
+        rnorm = jnp.max(jnp.where(sub.free, r_block / tol, 0.0))
+        rel, worst = jax.lax.top_k(jnp.where(sub.free, r_block / scale_b, -1.0), named)
         # Frozen slots only shape the path: the answer must balance every
         # block with the forces of the contact law itself (R_law), within the
         # same tolerance, so that no state against the law is returned. Where
@@ -463,7 +477,9 @@ def _newton(model: Model, sub: Sub, st0, warm=False):
                        frozen_state=frozen_state, it=it, done=done, converged=converged,
                        clipped=clipped & ~converged, finite=finite, rnorm=rnorm * model.tol,
                        rprev=rnorm, rbest=rbest, stall=stall, settled=settled, trying=trying,
-                       tangent=tangent, untried=untried, lost=lost, flat=flat, fails=fails)
+                       tangent=tangent, untried=untried, lost=lost, flat=flat, fails=fails,
+                       unbalanced=worst.astype(jnp.int32), unbalanced_force=r_block[worst],
+                       unbalanced_rel=rel)
 
     inf = jnp.array(jnp.inf, dtype)
     # Counters int32 (a weakly typed jnp.array(0) plus an int32, as ``fails`` gets, comes
@@ -482,7 +498,9 @@ def _newton(model: Model, sub: Sub, st0, warm=False):
                    clipped=jnp.array(False), finite=jnp.array(True), rnorm=inf, rprev=inf,
                    rbest=inf, stall=zero, settled=zero, trying=jnp.array(False),
                    tangent=jnp.array(False), untried=jnp.array(True), lost=jnp.array(False),
-                   flat=zero, fails=zero)
+                   flat=zero, fails=zero, unbalanced=jnp.zeros(named, jnp.int32),
+                   unbalanced_force=jnp.zeros(named, dtype),
+                   unbalanced_rel=jnp.full(named, -1.0, dtype))
     return jax.lax.while_loop(lambda c: ~c.done, body, init)
 
 

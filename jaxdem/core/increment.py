@@ -120,7 +120,10 @@ class Progress(NamedTuple):
     (:func:`jaxdem.core._substep.commit_substep`); ``pairs_needed``, ``cell_full``,
     ``slots_full`` and ``touch_needed`` what the contact list needed (the host grows what
     overflowed); ``approximate`` a sub-step ended without equilibrium, cut by the step
-    length (see :func:`increment_tangent`).
+    length (see :func:`increment_tangent`); ``unbalanced``, ``unbalanced_force`` and
+    ``unbalanced_rel`` the last sub-step's blocks furthest out of balance, their
+    out-of-balance force (kN/m) and its ratio to their force scale
+    (:class:`jaxdem.core._substep.Iterate`).
     With sensitivities, ``dstate`` and ``dsnapshot`` their derivatives (else None;
     ``dsnapshot`` has the snapshot's float fields alone: :func:`jaxdem.core.state.float_part`).
     """
@@ -140,6 +143,9 @@ class Progress(NamedTuple):
     slots_full: jax.Array
     touch_needed: jax.Array
     approximate: jax.Array
+    unbalanced: jax.Array
+    unbalanced_force: jax.Array
+    unbalanced_rel: jax.Array
     dstate: Any = None
     dsnapshot: Snapshot | None = None
     joints: JointMotion | None = None
@@ -156,8 +162,8 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
     # The shapes of the balance and snapshot carried by the loop. ``substep`` is
     # jitted so that this trace is the one the loop body uses, not a second one: with
     # the body's abstract arguments (``warm`` a traced bool, as the body makes it).
-    _, _, _, _, balance0, snap0 = jax.eval_shape(_substep_once, model, state, loads,
-                                                 jnp.zeros((), bool))
+    _, _, newton0, _, balance0, snap0 = jax.eval_shape(_substep_once, model, state, loads,
+                                                       jnp.zeros((), bool))
     zeros_like = lambda t: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), t)  # noqa: E731
 
     def body(c: Progress) -> Progress:
@@ -209,6 +215,8 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
                         touch_needed=jnp.maximum(c.touch_needed,
                                                  need.touching.astype(jnp.int32)),
                         approximate=c.approximate | ~newton.converged,
+                        unbalanced=newton.unbalanced, unbalanced_force=newton.unbalanced_force,
+                        unbalanced_rel=newton.unbalanced_rel,
                         dstate=None if tangents is None else hold(c.dstate, dstate),
                         dsnapshot=dsnap)
 
@@ -229,6 +237,9 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
                     cell_full=jnp.array(False), slots_full=jnp.array(False),
                     touch_needed=zero,
                     approximate=jnp.array(False),
+                    unbalanced=zeros_like(newton0.unbalanced),
+                    unbalanced_force=zeros_like(newton0.unbalanced_force),
+                    unbalanced_rel=zeros_like(newton0.unbalanced_rel),
                     dstate=dstate0, dsnapshot=dsnap0)
     c = jax.lax.while_loop(lambda c: c.status < 0, body, init)
     return c.state, c._replace(state=None, joints=_joint_motion(model, state, c.state, c.snapshot))

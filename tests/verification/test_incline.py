@@ -116,3 +116,23 @@ def test_shear_history_is_carried_across_increments_and_redetection():
     one = _solve(20, 45, load_steps=1).blocks[1]["u"]
     four = _solve(20, 45, load_steps=4).blocks[1]["u"]
     np.testing.assert_allclose(four, one, rtol=1e-6)
+
+
+def test_the_iteration_limit_names_the_block_out_of_balance():
+    # One Newton iteration a sub-step cannot settle the block's springs: the analysis
+    # stops at the iteration limit and says where the blocks do not balance. The named
+    # block's ratio is the increment's residual (the largest over the free blocks,
+    # computed apart), and its force scale (force / ratio) is at least its weight,
+    # W = 25 kN/m3 x 1 m2 = 25 kN/m, the load it carries.
+    r = _solve(25, 30, max_iterations=1)
+    assert r.status == "iteration_limit" and not r.converged
+    assert [b["id"] for b in r.unbalanced_blocks] == [1]
+    worst = r.unbalanced_blocks[0]
+    assert math.isclose(worst["relative"], r.stages[-1]["residual"][-1], rel_tol=1e-9)
+    assert worst["relative"] > 1e-6  # beyond the default solver.tolerance
+    assert worst["force"] / worst["relative"] >= 25.0 * (1 - 1e-9)
+    assert "Out of balance: block 1 at (" in r.message
+    assert np.allclose(worst["centroid"], r.blocks[1]["centroid"])
+    assert r.to_dict()["unbalanced_blocks"] == r.unbalanced_blocks
+    # An equilibrium names none.
+    assert _solve(25, 30).unbalanced_blocks == []
