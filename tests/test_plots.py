@@ -726,3 +726,23 @@ def test_a_bar_in_a_sliver_is_cut_at_its_edge(tmp_path, drawn):
     assert 1500.0 / kpa_per_m > 0.1  # the ordinary blocks' bars stay readable
     others = np.array([np.hypot(*(s[1] - s[0])) for s in segments[:-2]])
     assert others.max() <= 3.0
+
+
+def test_blocks_out_of_balance_are_drawn_and_named(tmp_path, drawn_axes):
+    # An analysis stopped at the iteration limit: its blocks out of balance are filled
+    # and outlined in goldenrod in both panels, and the title's status names them.
+    result = make_big_tunnel_result()
+    result.status, result.converged = "iteration_limit", False
+    ids = [0, 3]
+    result.unbalanced_blocks = [dict(id=i, centroid=[0.0, 0.0], force=10.0, relative=0.5)
+                                for i in ids]
+    plots.plot_blocks(result, tmp_path / "blocks.png")
+    for panel in drawn_axes["blocks.png"]["panels"]:
+        fill = panel["collections"]["out of balance blocks"]
+        assert len(fill.get_paths()) == len(ids)
+        assert fill.get_edgecolor()[0][:3] == pytest.approx(matplotlib.colors.to_rgb("goldenrod"))
+        for path, i in zip(fill.get_paths(), ids, strict=True):
+            block = np.asarray(result.geometry["final_vertices"][i])
+            np.testing.assert_allclose(path.vertices[:len(block)], block)
+    assert (plots_model._status_text(result)
+            == "NOT CONVERGED (iteration_limit): blocks 0, 3 out of balance")

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 from matplotlib.collections import LineCollection, PolyCollection
+from matplotlib.colors import to_rgb
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 from matplotlib.path import Path as MplPath
@@ -297,21 +298,38 @@ def draw_moving(ax: Any, final: list[np.ndarray], moving: Sequence[int], lw: flo
     """Blocks still moving at a mechanism: filled light red, outlined red; a block
     smaller than 3% of ``size`` (the panel's extent, m) is also ringed, so that a single
     small block is seen at the scale of the whole model."""
-    if not moving:
+    return _draw_marked(ax, final, moving, lw, size, "red", "moving")
+
+
+def draw_unbalanced(ax: Any, final: list[np.ndarray], unbalanced: Sequence[int], lw: float,
+                    size: float) -> list[Any]:
+    """Blocks out of balance where the analysis stopped at the iteration limit
+    (``Result.unbalanced_blocks``): filled and outlined goldenrod (red, purple and teal
+    are the moving blocks', the displacements' and the supports'), small ones ringed, as
+    :func:`draw_moving` draws the moving ones."""
+    return _draw_marked(ax, final, unbalanced, lw, size, "goldenrod", "out of balance")
+
+
+def _draw_marked(ax: Any, final: list[np.ndarray], ids: Sequence[int], lw: float, size: float,
+                 color: str, name: str) -> list[Any]:
+    """The blocks ``ids`` filled in a light ``color`` and outlined in it, those smaller than
+    3% of ``size`` also ringed; the legend's entry is ``name`` with their count. The
+    collections' gids are "``name`` blocks" and "``name`` ring"."""
+    if not ids:
         return []
-    polys = [final[int(i)] for i in moving]
+    polys = [final[int(i)] for i in ids]
+    fill = (*to_rgb(color), 0.3)
     ax.add_collection(
-        PolyCollection(polys, closed=True, facecolors=(1.0, 0.0, 0.0, 0.3), edgecolors="red",
-                       linewidths=max(2.0 * lw, 1.5), zorder=4, gid="moving blocks")
+        PolyCollection(polys, closed=True, facecolors=fill, edgecolors=color,
+                       linewidths=max(2.0 * lw, 1.5), zorder=4, gid=f"{name} blocks")
     )
     extent = np.array([float(np.ptp(p, axis=0).max()) for p in polys])
     small = extent < 0.03 * size
     if small.any():
         centres = np.array([polygon_centroid(p) for p, s in zip(polys, small, strict=True) if s])
-        ax.scatter(centres[:, 0], centres[:, 1], s=400, facecolors="none", edgecolors="red",
-                   linewidths=1.5, zorder=8.5, gid="moving ring")
-    return [Patch(facecolor=(1.0, 0.0, 0.0, 0.3), edgecolor="red", lw=2.0,
-                  label=f"moving ({len(moving)})")]
+        ax.scatter(centres[:, 0], centres[:, 1], s=400, facecolors="none", edgecolors=color,
+                   linewidths=1.5, zorder=8.5, gid=f"{name} ring")
+    return [Patch(facecolor=fill, edgecolor=color, lw=2.0, label=f"{name} ({len(ids)})")]
 
 
 def draw_supports(ax: Any, excavations: dict[str, Any], supports: Sequence[dict[str, Any]],

@@ -48,6 +48,7 @@ from jaxdem.plots._layers import (
     draw_monitors,
     draw_moving,
     draw_supports,
+    draw_unbalanced,
     draw_water_table,
 )
 from jaxdem.plots._loose import draw_loose_blocks
@@ -73,7 +74,8 @@ def plot_blocks(result: Result, path: str | Path, *, magnification: float | None
     current anchors coloured by state (elastic, yielded, pulled out; not installed
     light grey dotted) and labelled with their force in kN beside the bolt, support
     pressure as a band and arrows on the excavation boundary with its value, blocks
-    still moving at a mechanism filled and outlined red (a small one also ringed),
+    still moving at a mechanism filled and outlined red (a small one also ringed), and
+    those out of balance where the analysis stopped at the iteration limit goldenrod,
     monitor points and sections labelled.
 
     When the scene has excavations, a second panel shows the model around them (their
@@ -173,6 +175,7 @@ class _ModelLayers:
     walls: list[np.ndarray]
     bolts: list[np.ndarray]
     moving: list[int]
+    unbalanced: list[int]
 
     @classmethod
     def of(cls, result: Result) -> _ModelLayers:
@@ -187,8 +190,10 @@ class _ModelLayers:
         walls = [np.asarray(w, dtype=float).reshape(2, 2) for w in geometry.get("walls", [])]
         moving = [int(i) for i in result.moving_blocks
                   if 0 <= int(i) < len(final) and not excavated[int(i)]]
+        unbalanced = [int(b["id"]) for b in getattr(result, "unbalanced_blocks", [])
+                      if 0 <= int(b["id"]) < len(final) and not excavated[int(b["id"])]]
         return cls(result, initial, final, fixed, excavated, walls, bolt_segments(geometry),
-                   moving)
+                   moving, unbalanced)
 
     @property
     def shown(self) -> list[np.ndarray]:
@@ -209,9 +214,11 @@ class _ModelLayers:
 
     def zoom(self) -> tuple[float, float, float, float] | None:
         """The window around the excavations, the bolts that reach into it and the moving
-        blocks in it (None: no excavation, or it fills most of the model)."""
+        (or out-of-balance) blocks in it (None: no excavation, or it fills most of the
+        model)."""
+        marked = self.moving + self.unbalanced
         return zoom_window(self.openings(), self.shown + self.bolts,
-                           also=self.bolts + [self.final[i] for i in self.moving])
+                           also=self.bolts + [self.final[i] for i in marked])
 
     def draw(self, ax: Any, magnification: float | None, labels: bool,
              size: float | None = None) -> list[Any]:
@@ -234,6 +241,7 @@ class _ModelLayers:
             handles.append(Line2D([], [], color="k", lw=3.0, label="wall"))
         size = size or model_size(self.shown + self.bolts)
         handles += draw_moving(ax, self.final, self.moving, lw, size)
+        handles += draw_unbalanced(ax, self.final, self.unbalanced, lw, size)
         handles += draw_contacts(ax, geometry.get("contacts") or {}, len(self.final))
         handles += draw_supports(ax, geometry.get("excavations") or {},
                                  geometry.get("supports") or [], kept_initial)
@@ -260,9 +268,14 @@ class _ModelLayers:
 
 
 def _status_text(result: Result) -> str:
-    """'stable', 'UNSTABLE: blocks 3, 7 moving' or 'NOT CONVERGED (iteration_limit)'."""
+    """'stable', 'UNSTABLE: blocks 3, 7 moving' or 'NOT CONVERGED (iteration_limit)' (with
+    the blocks out of balance where it names them: ': blocks 712, 855 out of balance')."""
     if result.status not in ("converged", "mechanism"):
-        return f"NOT CONVERGED ({result.status})"
+        ids = [str(int(b["id"])) for b in getattr(result, "unbalanced_blocks", [])]
+        if not ids:
+            return f"NOT CONVERGED ({result.status})"
+        word = "block" if len(ids) == 1 else "blocks"
+        return f"NOT CONVERGED ({result.status}): {word} {', '.join(ids)} out of balance"
     if result.stable and not result.moving_blocks:
         return "stable"
     ids = [str(int(i)) for i in result.moving_blocks]
