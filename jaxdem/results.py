@@ -66,9 +66,9 @@ class Result:
       unbalanced_blocks: where the analysis stopped at the iteration limit, the free
         blocks furthest out of balance at its last iteration (at most five, those beyond
         the tolerance, the largest first): per block ``id``, ``centroid`` [x, y]
-        (initial, m), ``force`` (kN/m, the largest
-        of |Fx|, |Fy| and |M| / radius left unbalanced) and ``relative`` (that over the
-        block's force scale, its load or the largest force on it); else empty.
+        (initial, m), ``force`` (kN/m, the largest of |Fx|, |Fy| and |M| / radius left
+        unbalanced) and ``relative`` (that over the block's force scale, its load or the
+        largest force on it); else empty.
       loose_blocks: the small blocks that fell free into an opening and were removed
         (``solver.loose_blocks = "remove"``): per block ``id``, ``stage`` (the stage they
         fell in, which was then solved again without them), ``volume`` (m3 per m of
@@ -437,7 +437,7 @@ def initial_contacts(snap: dict, act: np.ndarray, ref: Any) -> dict[str, np.ndar
 
 def _percent(x: float) -> str:
     """0.0081 -> ``0.81%``, 0.41 -> ``41%``, 3.09 -> ``309%``."""
-    return f"{100 * x:.2g}%" if x < 1 else f"{100 * x:.0f}%"
+    return f"{100 * x:.2g}%" if 100 * x < 10 else f"{100 * x:.0f}%"
 
 
 def unbalanced_blocks(info, tol: float, centroids) -> list[dict[str, Any]]:
