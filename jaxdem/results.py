@@ -446,9 +446,7 @@ def unbalanced_blocks(info, tol: float, centroids) -> list[dict[str, Any]]:
     ``tol`` relative to their force scale, the largest first: ``id``, ``centroid`` [x, y]
     (initial, m: ``centroids``, one per rock block), ``force`` (kN/m) and ``relative``
     (``Result.unbalanced_blocks``)."""
-    ids = np.asarray(info.unbalanced)
-    force = np.asarray(info.unbalanced_force)
-    rel = np.asarray(info.unbalanced_rel)
+    ids, force, rel = (np.asarray(x) for x in info.unbalanced)
     return [dict(id=int(i), centroid=[float(x) for x in centroids[i]], force=float(f),
                  relative=float(r))
             for i, f, r in zip(ids, force, rel, strict=True) if r > tol and i < len(centroids)]

@@ -145,6 +145,18 @@ ARMIJO = 1e-4
 UNBALANCED_NAMED = 5
 
 
+class Unbalanced(NamedTuple):
+    """The K = min(:data:`UNBALANCED_NAMED`, N) free blocks with the largest out-of-balance
+    force relative to their force scale, largest first, at one evaluation: ``ids`` (K,),
+    ``force`` (K,) that force (kN/m, measured as :func:`jaxdem.core._springs.block_residual`)
+    and ``rel`` (K,) the same over the block's force scale (-1 for a block that is not
+    free)."""
+
+    ids: jax.Array
+    force: jax.Array
+    rel: jax.Array
+
+
 class Iterate(NamedTuple):
     """The carry of the Newton loop of one sub-step, and its record when it ends.
 
@@ -161,12 +173,8 @@ class Iterate(NamedTuple):
     failed :data:`RETRY_LIMIT` times (``fails``), in this sub-step, ``flat`` how many
     stalled iterations in a row left the residual as it was (to :data:`FLAT`),
     ``lost`` the slip-tangent step of such a flat stall did not reduce the residual in
-    this sub-step (a stall is then followed as a mechanism at once). Per block, at the
-    last evaluation: ``unbalanced`` (K,) the K = min(:data:`UNBALANCED_NAMED`, N) free
-    blocks with the largest out-of-balance force relative to their force scale, largest
-    first, ``unbalanced_force`` (K,) that force (kN/m, measured as
-    :func:`jaxdem.core._springs.block_residual`) and ``unbalanced_rel`` (K,) the same
-    over the block's force scale (-1 for a block that is not free).
+    this sub-step (a stall is then followed as a mechanism at once). ``unbalanced`` the
+    blocks furthest out of balance at the last evaluation (:class:`Unbalanced`).
     """
 
     du: jax.Array
@@ -190,9 +198,7 @@ class Iterate(NamedTuple):
     lost: jax.Array
     flat: jax.Array
     fails: jax.Array
-    unbalanced: jax.Array
-    unbalanced_force: jax.Array
-    unbalanced_rel: jax.Array
+    unbalanced: Unbalanced
 
 
 class Detection(NamedTuple):
@@ -478,8 +484,7 @@ def _newton(model: Model, sub: Sub, st0, warm=False):
                        clipped=clipped & ~converged, finite=finite, rnorm=rnorm * model.tol,
                        rprev=rnorm, rbest=rbest, stall=stall, settled=settled, trying=trying,
                        tangent=tangent, untried=untried, lost=lost, flat=flat, fails=fails,
-                       unbalanced=worst.astype(jnp.int32), unbalanced_force=r_block[worst],
-                       unbalanced_rel=rel)
+                       unbalanced=Unbalanced(worst.astype(jnp.int32), r_block[worst], rel))
 
     inf = jnp.array(jnp.inf, dtype)
     # Counters int32 (a weakly typed jnp.array(0) plus an int32, as ``fails`` gets, comes
@@ -498,9 +503,9 @@ def _newton(model: Model, sub: Sub, st0, warm=False):
                    clipped=jnp.array(False), finite=jnp.array(True), rnorm=inf, rprev=inf,
                    rbest=inf, stall=zero, settled=zero, trying=jnp.array(False),
                    tangent=jnp.array(False), untried=jnp.array(True), lost=jnp.array(False),
-                   flat=zero, fails=zero, unbalanced=jnp.zeros(named, jnp.int32),
-                   unbalanced_force=jnp.zeros(named, dtype),
-                   unbalanced_rel=jnp.full(named, -1.0, dtype))
+                   flat=zero, fails=zero,
+                   unbalanced=Unbalanced(jnp.zeros(named, jnp.int32), jnp.zeros(named, dtype),
+                                         jnp.full(named, -1.0, dtype)))
     return jax.lax.while_loop(lambda c: ~c.done, body, init)
 
 

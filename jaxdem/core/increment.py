@@ -37,7 +37,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxdem.core._substep import substep
+from jaxdem.core._substep import Unbalanced, substep
 from jaxdem.core.compile_cache import on_disk
 from jaxdem.core.kinematics import block_travel, rotate_vectors
 from jaxdem.core.sensitivities import substep_tangent
@@ -120,10 +120,8 @@ class Progress(NamedTuple):
     (:func:`jaxdem.core._substep.commit_substep`); ``pairs_needed``, ``cell_full``,
     ``slots_full`` and ``touch_needed`` what the contact list needed (the host grows what
     overflowed); ``approximate`` a sub-step ended without equilibrium, cut by the step
-    length (see :func:`increment_tangent`); ``unbalanced``, ``unbalanced_force`` and
-    ``unbalanced_rel`` the last sub-step's blocks furthest out of balance, their
-    out-of-balance force (kN/m) and its ratio to their force scale
-    (:class:`jaxdem.core._substep.Iterate`).
+    length (see :func:`increment_tangent`); ``unbalanced`` the last sub-step's blocks furthest
+    out of balance (:class:`jaxdem.core._substep.Unbalanced`).
     With sensitivities, ``dstate`` and ``dsnapshot`` their derivatives (else None;
     ``dsnapshot`` has the snapshot's float fields alone: :func:`jaxdem.core.state.float_part`).
     """
@@ -143,9 +141,7 @@ class Progress(NamedTuple):
     slots_full: jax.Array
     touch_needed: jax.Array
     approximate: jax.Array
-    unbalanced: jax.Array
-    unbalanced_force: jax.Array
-    unbalanced_rel: jax.Array
+    unbalanced: Unbalanced
     dstate: Any = None
     dsnapshot: Snapshot | None = None
     joints: JointMotion | None = None
@@ -215,8 +211,7 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
                         touch_needed=jnp.maximum(c.touch_needed,
                                                  need.touching.astype(jnp.int32)),
                         approximate=c.approximate | ~newton.converged,
-                        unbalanced=newton.unbalanced, unbalanced_force=newton.unbalanced_force,
-                        unbalanced_rel=newton.unbalanced_rel,
+                        unbalanced=newton.unbalanced,
                         dstate=None if tangents is None else hold(c.dstate, dstate),
                         dsnapshot=dsnap)
 
@@ -238,8 +233,6 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
                     touch_needed=zero,
                     approximate=jnp.array(False),
                     unbalanced=zeros_like(newton0.unbalanced),
-                    unbalanced_force=zeros_like(newton0.unbalanced_force),
-                    unbalanced_rel=zeros_like(newton0.unbalanced_rel),
                     dstate=dstate0, dsnapshot=dsnap0)
     c = jax.lax.while_loop(lambda c: c.status < 0, body, init)
     return c.state, c._replace(state=None, joints=_joint_motion(model, state, c.state, c.snapshot))

@@ -271,21 +271,24 @@ def _status_text(result: Result) -> str:
     """'stable', 'UNSTABLE: blocks 3, 7 moving' or 'NOT CONVERGED (iteration_limit)' (with
     the blocks out of balance where it names them: ': blocks 712, 855 out of balance')."""
     if result.status not in ("converged", "mechanism"):
-        ids = [str(int(b["id"])) for b in getattr(result, "unbalanced_blocks", [])]
+        ids = [b["id"] for b in getattr(result, "unbalanced_blocks", [])]
         if not ids:
             return f"NOT CONVERGED ({result.status})"
-        word = "block" if len(ids) == 1 else "blocks"
-        return f"NOT CONVERGED ({result.status}): {word} {', '.join(ids)} out of balance"
+        return f"NOT CONVERGED ({result.status}): {_blocks_named(ids)} out of balance"
     if result.stable and not result.moving_blocks:
         return "stable"
-    ids = [str(int(i)) for i in result.moving_blocks]
-    if not ids:
+    if not result.moving_blocks:
         return "UNSTABLE"
-    shown = ", ".join(ids[:10])
-    if len(ids) > 10:
-        shown += f", ... (+{len(ids) - 10} more)"
-    word = "block" if len(ids) == 1 else "blocks"
-    return f"UNSTABLE: {word} {shown} moving"
+    return f"UNSTABLE: {_blocks_named(result.moving_blocks)} moving"
+
+
+def _blocks_named(ids) -> str:
+    """'block 3', 'blocks 3, 7', 'blocks 1, ..., 10, ... (+5 more)' (the first ten)."""
+    names = [str(int(i)) for i in ids]
+    shown = ", ".join(names[:10])
+    if len(names) > 10:
+        shown += f", ... (+{len(names) - 10} more)"
+    return f"{'block' if len(names) == 1 else 'blocks'} {shown}"
 
 
 def plot_principal_stresses(result: Result, path: str | Path) -> Path | None:
