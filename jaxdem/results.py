@@ -523,12 +523,13 @@ def block_overlap(model, state, n_real: int) -> tuple[float, float]:
 
 
 def build_result(scene, model, layout, state, ref, info, records, history, timing,
-                 bolt_active=None, loose=()) -> Result:
+                 bolt_active=None, loose=(), cuts=()) -> Result:
     """Assemble the host Result from the final state and the increment records.
 
     ``ref`` is the state displacements are measured from (None: the start);
     ``bolt_active`` the driver's mask of installed bolts (:func:`scene_bolts`); ``loose``
-    the blocks removed as loose (``Result.loose_blocks``).
+    the blocks removed as loose (``Result.loose_blocks``); ``cuts`` the load steps cut
+    (:func:`jaxdem.solver.ramp`: each one's ``stage``).
     """
     nr = layout.n_rock
     snap = jax.tree.map(np.asarray, info.snapshot)
@@ -545,13 +546,24 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
     stable = status != Status.MECHANISM
     converged = status == Status.CONVERGED
     where = f"load step {last['step']} of stage {last['stage']}"
+    cut = sum(c["stage"] == last["stage"] for c in cuts)
+    held = ""
+    if cut and not converged:
+        # Where the shortest step failed: how far the stage's loads held.
+        k, n = last["step"], last["n_steps"]
+        where = f"load step {k} of {n} of stage {last['stage']}"
+        held = (f" Its load step was cut {cut} time{'s' if cut > 1 else ''}: the last "
+                f"equilibrium at load factor {(k - 1) / n:.4g}, none found at {k / n:.4g}.")
     if status == Status.MECHANISM:
         message = (f"{status.message} Moving blocks: {', '.join(map(str, moving))} "
-                   f"(travel over {max_disp:.3g} m in {where}).")
+                   f"(travel over {max_disp:.3g} m in {where}).{held}")
     elif converged:
-        message = f"{status.message} {len(records)} increments, stable."
+        per_stage = {c["stage"]: sum(d["stage"] == c["stage"] for d in cuts) for c in cuts}
+        shortened = "".join(f"; the load step of stage {name} cut {m} time{'s' if m > 1 else ''}"
+                            for name, m in per_stage.items())
+        message = f"{status.message} {len(records)} increments{shortened}, stable."
     else:
-        message = f"{status.message} Stopped in {where}."
+        message = f"{status.message} Stopped in {where}.{held}"
     unbalanced = (unbalanced_blocks(info, float(model.tol), layout.centroids[:nr])
                   if status == Status.ITERATION_LIMIT else [])
     if unbalanced:
@@ -602,6 +614,8 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
             "name": name,
             "converged": all(r["status"] == Status.CONVERGED for r in recs),
             "stable": all(r["status"] != Status.MECHANISM for r in recs),
+            "load_factor": [r["load_factor"] for r in recs],
+            "step_cuts": sum(c["stage"] == name for c in cuts),
             "iterations": [r["iterations"] for r in recs],
             "substeps": [r["substeps"] for r in recs],
             "residual": [r["residual"] for r in recs],

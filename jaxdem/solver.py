@@ -89,7 +89,7 @@ def solve(scene, set: dict | None = None, progress=None):
         frame(d)
     timing = dict(build_s=build_s, compile_s=d.compile_s, solve_s=d.solve_s)
     result = build_result(scene, d.model, layout, d.state, d.ref, d.info, d.records, d.history,
-                          timing, bolt_active=d.bolt_active, loose=d.loose)
+                          timing, bolt_active=d.bolt_active, loose=d.loose, cuts=d.cuts)
     result.geometry["stages"] = frames
     return result
 
@@ -130,14 +130,14 @@ def run(scene, model: Model, state: State, layout, data: Data, progress=None,
         # acts from the first load step. Otherwise it is installed in its stage (the
         # first, when it names none).
         d.bolt_active[:] = True
+    if isinstance(d, _Driver):
+        d.max_cuts = scene.solver.max_step_cuts
     if in_situ is None:
-        n = layout.load_steps
         base = data.weight + data.traction
-        for k in range(1, n + 1):
-            # Pore pressure grows with the weight: a saturated slope is loaded
-            # as a whole, not by full water pressure on a weightless mass.
-            if not d.step("loading", k, n, d.loads(k / n * base, water_scale=k / n)):
-                break
+        # Pore pressure grows with the weight: a saturated slope is loaded
+        # as a whole, not by full water pressure on a weightless mass.
+        ramp(d, "loading", layout.load_steps,
+             lambda lam: (d.loads(lam * base, water_scale=lam), None))
     else:
         if in_situ.mode == "gravity":
             base = data.weight + data.traction
@@ -224,9 +224,8 @@ def _run_stage(d, stage, layout, data, base, pending, releasing, loose, relaxed)
                   zero)
     y_old = d.water_y
     y_new = data.stage_water.get(stage["name"], y_old)
-    n = stage["load_steps"] or layout.load_steps
-    for k in range(1, n + 1):
-        lam = k / n
+
+    def at(lam):
         # What is still held of each release, from ``before`` down to ``held[0]``
         # (1 - lam of it for a release in one stage).
         still = [r["before"] - lam * (r["before"] - r["held"][0]) for r in releasing]
@@ -236,10 +235,42 @@ def _run_stage(d, stage, layout, data, base, pending, releasing, loose, relaxed)
         # (rounded to 12 digits for the record: 0.08, not 0.08000000000000007)
         released = ({name: round(1.0 - h, 12) for h, r in zip(still, releasing, strict=True)
                      for name in r["names"]} if relaxed else None)
-        if not d.step(stage["name"], k, n, d.loads(force, (1 - lam) * y_old + lam * y_new),
-                      released):
-            break
+        return d.loads(force, (1 - lam) * y_old + lam * y_new), released
+
+    ramp(d, stage["name"], stage["load_steps"] or layout.load_steps, at)
     return dict(support=support, releasing=releasing, water_y=y_new)
+
+
+def ramp(d, stage: str, n: int, at) -> bool:
+    """The increments of one stage (or of the loading): its load factor from 0 to 1 in
+    ``n`` steps, ``at(lam)`` giving the loads of the increment that ends at lam (and the
+    released fractions to record, or None). Returns whether every increment converged.
+
+    A load step that ends at the iteration limit is cut in two and tried again from the
+    equilibrium before it (the driver's :meth:`_Driver.checkpoint`), at most
+    ``d.max_cuts`` times in the stage; the rest of the stage keeps the shorter step
+    (README, "Load steps cut"). That is how an implicit code controls its step: a step
+    too long for Newton to follow the contacts' changes is not a failure of the rock
+    (seed example 3 without D at k0 = 1/3: 4 load steps stop at half the release, 8
+    reach it). Where the shortest step fails too, the analysis stops there, with the
+    last equilibrium the one before it. The load factors are k / (n 2^cuts), exactly
+    those of a stage of that many steps. A batch (``jaxdem.batch``, whose driver has no
+    ``max_cuts``) never cuts: its samples share their load steps.
+    """
+    cuts = getattr(d, "max_cuts", 0)
+    k, made = 0, 0
+    while k < n:
+        saved = d.checkpoint() if made < cuts else None
+        loads, released = at((k + 1) / n)
+        if d.step(stage, k + 1, n, loads, released):
+            k += 1
+            continue
+        if saved is None or d.status != Status.ITERATION_LIMIT:
+            return False
+        d.restore(saved)
+        k, n, made = 2 * k, 2 * n, made + 1
+        d.cuts.append(dict(stage=stage, load_factor=(k + 2) / n))
+    return True
 
 
 MAX_LOOSE_ROUNDS = 5
@@ -398,6 +429,10 @@ class _Driver:
         self.approximate = False
         self.quick = quick  # programs compiled quick (compile_cache.QUICK_COMPILER_OPTIONS)
         self.loose: list[dict] = []  # blocks removed as loose: id, stage, volume, centroid
+        # Load steps cut (:func:`ramp`): at most max_cuts a stage; each cut's stage and the
+        # load factor of the step that did not converge.
+        self.max_cuts = 0
+        self.cuts: list[dict] = []
         p = data.p
         self.dstate = None if p == 0 else {
             k: jnp.zeros((p,) + getattr(state, k).shape, getattr(state, k).dtype)
@@ -445,7 +480,7 @@ class _Driver:
             self.approximate |= bool(info.approximate)
         self.status = Status.of(info.status)
         bal, jm = info.balance, info.joints
-        rec = dict(stage=stage, step=k, load_factor=k / n, status=self.status,
+        rec = dict(stage=stage, step=k, n_steps=n, load_factor=k / n, status=self.status,
                    iterations=int(info.iterations), substeps=int(info.substeps),
                    residual=float(info.residual), imbalance=global_imbalance(bal),
                    overlap=float(bal.overlap), overlap_rel=float(bal.overlap_rel),
@@ -470,13 +505,15 @@ class _Driver:
         """What a stage changes in the driver, to run it again (:meth:`restore`)."""
         return dict(state=self.state, dstate=self.dstate, info=self.info, status=self.status,
                     records=len(self.records), history=len(self.history),
-                    bolt_active=self.bolt_active.copy(), approximate=self.approximate)
+                    bolt_active=self.bolt_active.copy(), approximate=self.approximate,
+                    cuts=len(self.cuts))
 
     def restore(self, saved: dict) -> None:
         """Back to a :meth:`checkpoint` (the model keeps any capacity grown since)."""
         self.state, self.dstate, self.info = saved["state"], saved["dstate"], saved["info"]
         self.status, self.approximate = saved["status"], saved["approximate"]
         del self.records[saved["records"]:], self.history[saved["history"]:]
+        del self.cuts[saved["cuts"]:]
         self.bolt_active = saved["bolt_active"].copy()
 
     def free_falling(self, limit: float):

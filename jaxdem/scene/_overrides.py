@@ -25,7 +25,7 @@ from jaxdem.scene._schema import IN_SITU_FIELDS, MATERIAL_FIELDS
 # Scalar numeric fields that an override may add when the file leaves them out.
 _OPTIONAL_NUMERIC = {
     "solver": ("load_steps", "tolerance", "max_iterations", "max_displacement")
-    + ("regularization", "step_length", "max_loose_volume"),
+    + ("regularization", "step_length", "max_loose_volume", "max_step_cuts"),
     "materials": MATERIAL_FIELDS,
     "joints": ("kn", "ks", "cohesion", "friction_deg", "tensile_strength")
     + ("dip_deg", "spacing", "persistence", "gap"),

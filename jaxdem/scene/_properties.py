@@ -29,6 +29,7 @@ from jaxdem.scene._schema import (
     LINEAR_SOLVERS,
     LOOSE_BLOCKS,
     MATERIAL_FIELDS,
+    MAX_STEP_CUTS,
     SOLVER_FIELDS,
     Joint,
     Material,
@@ -67,6 +68,8 @@ def parse_solver(data: dict) -> SolverSettings:
         loose_blocks=(read_string(t["loose_blocks"], "solver.loose_blocks", LOOSE_BLOCKS)
                       if "loose_blocks" in t else d.loose_blocks),
         max_loose_volume=read_field(t, "max_loose_volume", "solver", lo=0),
+        max_step_cuts=read_field(t, "max_step_cuts", "solver", default=d.max_step_cuts, lo=0,
+                                 hi=MAX_STEP_CUTS, integer=True),
     )
 
 

@@ -255,6 +255,9 @@ class SolverSettings:
     # 0 without joint sets).
     loose_blocks: str = "remove"
     max_loose_volume: float | None = None
+    # How many times a stage's load step may be halved where an increment ends at the
+    # iteration limit (README, "Load steps cut"); 0: never.
+    max_step_cuts: int = 3
 
 
 SUPPORTED_SECTIONS = (
@@ -288,8 +291,11 @@ SOLVER_FIELDS = (
     "linear_solver",
     "loose_blocks",
     "max_loose_volume",
+    "max_step_cuts",
 )
 LOOSE_BLOCKS = ("remove", "stop")
+#: The most halvings of a load step (``solver.max_step_cuts``): 1/1024 of it.
+MAX_STEP_CUTS = 10
 MATERIAL_FIELDS = ("E", "nu", "unit_weight", "cohesion", "friction_deg", "tensile_strength")
 JOINT_FIELDS = (
     "kn",
