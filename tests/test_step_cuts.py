@@ -82,3 +82,22 @@ def test_bad_max_step_cuts_is_refused_with_the_field_named(tmp_path, value):
                            "--out", str(tmp_path / "out")],
                           cwd=ROOT, capture_output=True, text=True)
     assert proc.returncode == 2 and "solver.max_step_cuts" in proc.stderr + proc.stdout
+
+
+def test_derivatives_through_a_cut_are_those_of_the_shorter_steps():
+    """The sensitivities are carried through the cut (the failed try is undone with its
+    derivatives): the Jacobian of the monitors equals that of the two-step heading."""
+    import jax
+
+    params = ["joints.set1.kn", "joints.set2.friction_deg"]
+    cut = jaxdem.load_scene(STAGED).with_overrides(TIGHT)
+    two = jaxdem.load_scene(STAGED).with_overrides(
+        {**TIGHT, "solver.max_step_cuts": 0, "stages.0.load_steps": 2})
+    f_cut, theta = jaxdem.differentiable(cut, params)
+    f_two, _ = jaxdem.differentiable(two, params)
+    j_cut = jax.tree.leaves(jax.jacfwd(f_cut)(theta))
+    j_two = jax.tree.leaves(jax.jacfwd(f_two)(theta))
+    assert all(np.all(np.isfinite(np.asarray(j))) for j in j_cut)
+    assert any(np.any(np.asarray(j) != 0) for j in j_cut)
+    for a, b in zip(j_cut, j_two, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-15)
