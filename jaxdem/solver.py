@@ -57,7 +57,8 @@ def solve(scene, set: dict | None = None, progress=None):
       scene: a validated :class:`jaxdem.scene.Scene` (from :func:`jaxdem.load_scene`).
       set: parameter overrides by dotted path, e.g. ``{"joints.set1.kn": 2e6}``.
       progress: optional callable, called after each increment with a dict
-        (``stage``, ``step``, ``n_steps``, ``status``, ``iterations``,
+        (``stage``, ``step``, ``n_steps``, ``status``, ``cut``: the increment ended at the
+        iteration limit and is tried again with half the load step, ``iterations``,
         ``substeps``, ``residual``, ``stage_index``: 0 for the initial state (the
         "loading" or in-situ "initial" record), k for the k-th stage (the file's
         ``stage = k``), ``n_stages``: how many stages follow the initial state).
@@ -262,7 +263,7 @@ def ramp(d, stage: str, n: int, at) -> bool:
     while k < n:
         saved = d.checkpoint() if made < cuts else None
         loads, released = at((k + 1) / n)
-        if d.step(stage, k + 1, n, loads, released):
+        if d.step(stage, k + 1, n, loads, released, **({} if saved is None else {"retry": True})):
             k += 1
             continue
         if saved is None or d.status != Status.ITERATION_LIMIT:
@@ -462,9 +463,11 @@ class _Driver:
         dtype = loads.force.dtype
         return loads, dict(force=jnp.asarray(force[1:], dtype), water_y=jnp.asarray(wy[1:], dtype))
 
-    def step(self, stage, k, n, loads, released=None):
+    def step(self, stage, k, n, loads, released=None, retry=False):
         """One increment (load step k of n of ``stage``); ``released``: {excavation: fraction
-        of its load released so far}, recorded in scenes that release loads over stages."""
+        of its load released so far}, recorded in scenes that release loads over stages;
+        ``retry``: an iteration limit will be tried again with half the step (:func:`ramp`),
+        which the progress event says (``cut``)."""
         loads, dloads = loads
         tangents = None if dloads is None else dict(model=self.data.dmodel, state=self.dstate,
                                                     loads=dloads)
@@ -496,6 +499,7 @@ class _Driver:
                                  monitors=monitor_values(self.layout, self.state, self.ref)))
         if self.progress is not None:
             self.progress(dict(stage=stage, step=k, n_steps=n, status=self.status.label,
+                               cut=retry and self.status == Status.ITERATION_LIMIT,
                                iterations=rec["iterations"], substeps=rec["substeps"],
                                residual=rec["residual"], stage_index=self.stage_index,
                                n_stages=self.n_stages))

@@ -8,6 +8,7 @@ two-step analysis itself (the same increments, the same answer to round-off), an
 even the shortest step fails it stops there, naming the last equilibrium.
 """
 
+import io
 import subprocess
 import sys
 from pathlib import Path
@@ -16,6 +17,7 @@ import numpy as np
 import pytest
 
 import jaxdem
+from jaxdem.cli._progress import ProgressBar
 from jaxdem.scene import SceneError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -33,8 +35,16 @@ def test_a_step_too_long_for_the_iteration_is_cut_and_is_then_the_shorter_steps(
     assert whole.status == "iteration_limit"
     assert _stage(whole, "heading")["step_cuts"] == 0
 
-    cut = jaxdem.solve(scene, set=TIGHT)  # the default: up to 3 cuts a stage
+    events = []
+    cut = jaxdem.solve(scene, set=TIGHT, progress=events.append)  # the default: 3 cuts
     assert cut.status == "converged" and cut.converged, cut.message
+    # The progress shows the try that was cut, then the two half steps.
+    heading_events = [(e["step"], e["n_steps"], e["status"], e["cut"]) for e in events
+                      if e["stage"] == "heading"]
+    assert heading_events == [(1, 1, "iteration_limit", True), (1, 2, "converged", False),
+                              (2, 2, "converged", False)]
+    line = ProgressBar(stream=io.StringIO()).format(events[1])
+    assert line.endswith("iteration_limit: the load step cut in two"), line
     heading = _stage(cut, "heading")
     assert heading["load_factor"] == [0.5, 1.0] and heading["step_cuts"] == 1
     assert _stage(cut, "bench")["load_factor"] == [1.0]  # the next stage: its own steps

@@ -40,7 +40,8 @@ class ProgressBar(AbstractContextManager):
     """Text progress over stages and load increments, on stderr.
 
     Called by the solver once per increment with a dict: ``stage`` (name),
-    ``step`` (1-based), ``n_steps``, ``status``, ``iterations``, ``substeps``,
+    ``step`` (1-based), ``n_steps``, ``status``, ``cut`` (tried again with half the
+    load step: :func:`jaxdem.solver.ramp`), ``iterations``, ``substeps``,
     ``residual``, ``stage_index`` and ``n_stages``. Stages are counted as the scene file
     counts them: ``stage = 2`` (the second ``[[stages]]``) is "stage 2/N", N the
     number of stages; the initial state before them (the loading, or the in-situ
@@ -89,6 +90,8 @@ class ProgressBar(AbstractContextManager):
         status = str(event.get("status", ""))
         if status and status != "converged":
             text += f"  {status}"
+        if event.get("cut"):
+            text += ": the load step cut in two"
         return text
 
     def _where(self, stage: str, event: dict[str, Any]) -> str:
