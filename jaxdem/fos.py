@@ -291,10 +291,14 @@ def write_outputs(fos: FactorOfSafety, scene, out_dir: str | Path) -> list[Path]
         fos.mechanism = dict(factor=hi, status=result.status, stable=result.stable,
                              moving_blocks=list(result.moving_blocks), figure=figure.name,
                              message=result.message)
-        if result.stable:
+        if result.converged:
             fos.mechanism["note"] = ("the single solve at this factor found equilibrium "
                                      "although the batched trial did not: the figure shows "
                                      "that equilibrium")
+        elif result.stable:
+            fos.mechanism["note"] = (f"the single solve at this factor ended as "
+                                     f"{result.status}, not a mechanism: the figure shows "
+                                     "where it stopped")
         written.append(figure)
     written.insert(0, write_json(fos.to_dict(), out / "fos.json"))
     written.append(plot_trials(fos, out / "fos.png"))

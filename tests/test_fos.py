@@ -288,6 +288,23 @@ def test_cli_fos_exits_3_when_the_bracket_ends_at_an_iteration_limit(tmp_path, c
     assert (out / "mechanism.png").is_file()
 
 
+def test_fos_json_says_when_the_single_solve_is_no_mechanism(tmp_path, fake_batch, monkeypatch):
+    """The batch found a mechanism above F = 1.1 (stand-in), but the single solve drawn at
+    the bracket's unstable end stops at the iteration limit (one Newton iteration a
+    geometry update): fos.json says so, and does not call it an equilibrium."""
+    fake_batch(lambda f: "converged" if f <= 1.1 else "mechanism")
+    monkeypatch.setattr(fos_mod, "solve_at", lambda scene, factor, **_: jaxdem.solve(
+        scene, set={"solver.max_iterations": 1}))
+    scene = tmp_path / "incline.toml"
+    scene.write_text(_INCLINE_TOML)
+    out = tmp_path / "out"
+    main(["fos", str(scene), "--out", str(out)])
+    mechanism = json.loads((out / "fos.json").read_text())["mechanism"]
+    assert mechanism["status"] == "iteration_limit"
+    assert "ended as iteration_limit, not a mechanism" in mechanism["note"]
+    assert "equilibrium" not in mechanism["note"]
+
+
 @pytest.mark.parametrize("argv, field", [
     (["--trials", "1"], "--trials"),
     (["--tolerance", "0"], "--tolerance"),
