@@ -564,10 +564,6 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
         message = f"{status.message} {len(records)} increments{shortened}, stable."
     else:
         message = f"{status.message} Stopped in {where}.{held}"
-    if "to_and_fro" in last:
-        message += (f" Blocks went to and fro: a path past max_displacement ({max_disp:.3g} m), "
-                    f"but none ended more than {last['to_and_fro']:.3g} m from where the "
-                    "increment began (no mechanism).")
     unbalanced = (unbalanced_blocks(info, float(model.tol), layout.centroids[:nr])
                   if status == Status.ITERATION_LIMIT else [])
     if unbalanced:

@@ -274,23 +274,6 @@ def ramp(d, stage: str, n: int, at) -> bool:
     return True
 
 
-TO_AND_FRO = 0.5
-"""A "mechanism" whose blocks all end the increment closer than this share of
-``solver.max_displacement`` to where they began went to and fro, and is reported as the
-iteration limit (:meth:`_Driver.step`, :func:`net_travel`): a block that falls, slides or
-topples ends about max_displacement away (its path and its displacement are one)."""
-
-
-def net_travel(model: Model, start: State, end: State) -> float:
-    """The largest net travel (m) of a live block from ``start`` to ``end``: the distance
-    its centroid moved plus its net rotation times its radius (the measure of the
-    increment's path, :func:`jaxdem.core.kinematics.block_travel`, on the net motion)."""
-    alive = np.asarray(end.alive)
-    moved = np.hypot(*(np.asarray(end.centroid) - np.asarray(start.centroid)).T)
-    spin = np.abs(np.asarray(end.rot) - np.asarray(start.rot)) * np.asarray(model.radius)
-    return float(np.max(np.where(alive, moved + spin, 0.0), initial=0.0))
-
-
 MAX_LOOSE_ROUNDS = 5
 """Most times a stage is solved again without the loose blocks found (each time a whole
 stage): a rock mass that keeps ravelling after that is reported as a mechanism."""
@@ -489,7 +472,6 @@ class _Driver:
         tangents = None if dloads is None else dict(model=self.data.dmodel, state=self.dstate,
                                                     loads=dloads)
         t1 = time.perf_counter()
-        before = self.state
         self.model, self.state, info, dt = run_increment(self.model, self.state, loads, tangents,
                                                          self.quick)
         jax.block_until_ready(self.state.verts)
@@ -500,16 +482,6 @@ class _Driver:
             self.dstate = info.dstate
             self.approximate |= bool(info.approximate)
         self.status = Status.of(info.status)
-        net = None
-        if self.status == Status.MECHANISM:
-            net = net_travel(self.model, before, self.state)
-            if net < TO_AND_FRO * float(np.max(np.asarray(self.model.max_displacement))):
-                # No block has gone anywhere: the path that passed max_displacement went to
-                # and fro (the cells of a failing zone cycling from one geometry update to
-                # the next), which is no equilibrium and no mechanism either.
-                self.status = Status.ITERATION_LIMIT
-                info = info._replace(status=jnp.asarray(Status.ITERATION_LIMIT.code, jnp.int32))
-                self.info = info
         bal, jm = info.balance, info.joints
         rec = dict(stage=stage, step=k, n_steps=n, load_factor=k / n, status=self.status,
                    iterations=int(info.iterations), substeps=int(info.substeps),
@@ -522,8 +494,6 @@ class _Driver:
                    opening_blocks=[int(x) for x in np.asarray(jm.opening_blocks)])
         if released is not None:
             rec["released"] = released
-        if net is not None and self.status == Status.ITERATION_LIMIT:
-            rec["to_and_fro"] = net
         self.records.append(rec)
         self.history.append(dict(stage=stage, step=k, load_factor=k / n,
                                  monitors=monitor_values(self.layout, self.state, self.ref)))
