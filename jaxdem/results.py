@@ -11,6 +11,7 @@ Sign conventions: displacements in m (x right, y up), rotations in rad
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import json
 from pathlib import Path
@@ -528,8 +529,8 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
 
     ``ref`` is the state displacements are measured from (None: the start);
     ``bolt_active`` the driver's mask of installed bolts (:func:`scene_bolts`); ``loose``
-    the blocks removed as loose (``Result.loose_blocks``); ``cuts`` the load steps cut
-    (:func:`jaxdem.solver.ramp`: each one's ``stage``).
+    the blocks removed as loose (``Result.loose_blocks``); ``cuts`` the stage of each load
+    step cut (:func:`jaxdem.solver.ramp`).
     """
     nr = layout.n_rock
     snap = jax.tree.map(np.asarray, info.snapshot)
@@ -546,7 +547,8 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
     stable = status != Status.MECHANISM
     converged = status == Status.CONVERGED
     where = f"load step {last['step']} of stage {last['stage']}"
-    cut = sum(c["stage"] == last["stage"] for c in cuts)
+    cuts_in = collections.Counter(cuts)  # stage -> load steps cut in it
+    cut = cuts_in[last["stage"]]
     held = ""
     if cut and not converged:
         # Where the shortest step failed: how far the stage's loads held.
@@ -558,9 +560,8 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
         message = (f"{status.message} Moving blocks: {', '.join(map(str, moving))} "
                    f"(travel over {max_disp:.3g} m in {where}).{held}")
     elif converged:
-        per_stage = {c["stage"]: sum(d["stage"] == c["stage"] for d in cuts) for c in cuts}
         shortened = "".join(f"; the load step of stage {name} cut {m} time{'s' if m > 1 else ''}"
-                            for name, m in per_stage.items())
+                            for name, m in cuts_in.items())
         message = f"{status.message} {len(records)} increments{shortened}, stable."
     else:
         message = f"{status.message} Stopped in {where}.{held}"
@@ -615,7 +616,7 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
             "converged": all(r["status"] == Status.CONVERGED for r in recs),
             "stable": all(r["status"] != Status.MECHANISM for r in recs),
             "load_factor": [r["load_factor"] for r in recs],
-            "step_cuts": sum(c["stage"] == name for c in cuts),
+            "step_cuts": cuts_in[name],
             "iterations": [r["iterations"] for r in recs],
             "substeps": [r["substeps"] for r in recs],
             "residual": [r["residual"] for r in recs],

@@ -242,10 +242,10 @@ def _run_stage(d, stage, layout, data, base, pending, releasing, loose, relaxed)
     return dict(support=support, releasing=releasing, water_y=y_new)
 
 
-def ramp(d, stage: str, n: int, at) -> bool:
+def ramp(d, stage: str, n: int, at) -> None:
     """The increments of one stage (or of the loading): its load factor from 0 to 1 in
     ``n`` steps, ``at(lam)`` giving the loads of the increment that ends at lam (and the
-    released fractions to record, or None). Returns whether every increment converged.
+    released fractions to record, or None), until one does not converge.
 
     A load step that ends at the iteration limit is cut in two and tried again from the
     equilibrium before it (the driver's :meth:`_Driver.checkpoint`), at most
@@ -267,11 +267,10 @@ def ramp(d, stage: str, n: int, at) -> bool:
             k += 1
             continue
         if saved is None or d.status != Status.ITERATION_LIMIT:
-            return False
+            return
         d.restore(saved)
         k, n, made = 2 * k, 2 * n, made + 1
-        d.cuts.append(dict(stage=stage, load_factor=(k + 2) / n))
-    return True
+        d.cuts.append(stage)
 
 
 MAX_LOOSE_ROUNDS = 5
@@ -430,10 +429,9 @@ class _Driver:
         self.approximate = False
         self.quick = quick  # programs compiled quick (compile_cache.QUICK_COMPILER_OPTIONS)
         self.loose: list[dict] = []  # blocks removed as loose: id, stage, volume, centroid
-        # Load steps cut (:func:`ramp`): at most max_cuts a stage; each cut's stage and the
-        # load factor of the step that did not converge.
+        # Load steps cut (:func:`ramp`): at most max_cuts a stage; the stage of each cut.
         self.max_cuts = 0
-        self.cuts: list[dict] = []
+        self.cuts: list[str] = []
         p = data.p
         self.dstate = None if p == 0 else {
             k: jnp.zeros((p,) + getattr(state, k).shape, getattr(state, k).dtype)
