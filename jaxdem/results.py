@@ -523,6 +523,20 @@ def block_overlap(model, state, n_real: int) -> tuple[float, float]:
     return float(depth.max()), float((depth / size).max())
 
 
+def _in_situ_limit_message(scene) -> str:
+    """The iteration limit in the in-situ initial state: its stresses are in place at
+    once, so more load steps do not help; where the scene's warning says that the rock
+    cannot carry them (:attr:`jaxdem.scene.Scene.warnings`, "in_situ: ..."), say so."""
+    message = ("The iteration limit was reached before equilibrium in the initial state: "
+               "the in-situ stresses are in place at once (solver.load_steps does not "
+               "divide them).")
+    weak = [w for w in getattr(scene, "warnings", ()) if w.startswith("in_situ:")]
+    if weak:
+        return (f"{message} The intact rock cannot carry them (the in_situ warning); change "
+                "in_situ.k0 or the rock's strength, or raise solver.max_iterations.")
+    return f"{message} Try increasing solver.max_iterations."
+
+
 def build_result(scene, model, layout, state, ref, info, records, history, timing,
                  bolt_active=None, loose=(), cuts=()) -> Result:
     """Assemble the host Result from the final state and the increment records.
@@ -563,6 +577,8 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
         shortened = "".join(f"; the load step of stage {name} cut {m} time{'s' if m > 1 else ''}"
                             for name, m in cuts_in.items())
         message = f"{status.message} {len(records)} increments{shortened}, stable."
+    elif status == Status.ITERATION_LIMIT and last["stage"] == "initial" and scene.in_situ:
+        message = _in_situ_limit_message(scene)
     else:
         message = f"{status.message} Stopped in {where}.{held}"
     unbalanced = (unbalanced_blocks(info, float(model.tol), layout.centroids[:nr])

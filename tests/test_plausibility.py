@@ -6,12 +6,14 @@ examples give none."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
 import pytest
 from test_cli import SCENE
 
+import jaxdem
 from jaxdem.cli import main
 from jaxdem.scene import load_scene
 
@@ -118,6 +120,59 @@ def test_in_situ_beyond_the_rock_strength():
     assert len(scene.with_overrides({"in_situ.k0": 0.1}).warnings) == 1
     # A stronger rock carries it all.
     assert scene.with_overrides({"materials.rock.cohesion": 420.0}).warnings == ()
+
+
+WEAK_AT_DEPTH = """
+[scene]
+name = "weak rock under its own weight"
+[solver]
+max_iterations = 2
+[materials.rock]
+E = 4.0e7
+nu = 0.25
+cohesion = 2.0
+friction_deg = 35.0
+unit_weight = 26.0
+tensile_strength = 2.85
+[domain]
+outline = [[0.0, 0.0], [8.0, 0.0], [8.0, 8.0], [0.0, 8.0]]
+material = "rock"
+mesh_size = 2.0
+[in_situ]
+mode = "gravity"
+k0 = 0.0
+surface_y = 8.0
+[[boundaries]]
+side = "bottom"
+condition = "fixed"
+[[boundaries]]
+side = "left"
+condition = "roller"
+[[boundaries]]
+side = "right"
+condition = "roller"
+"""
+
+
+def test_an_initial_state_at_the_iteration_limit_says_why_not_load_steps():
+    """Rock of c = 2 kPa, phi = 35 deg, 26 kN/m3, 8 m of it at K0 = 0: uniaxial strength
+    2 c tan(62.5 deg) = 7.7 kPa, passed 0.3 m below the surface (the base carries 208 kPa),
+    so its in-situ state must fail into a plastic equilibrium, which 2 Newton iterations
+    a geometry update do not find. The in-situ stresses are in place at once: the message
+    does not send the engineer to solver.load_steps (no load step divides them) but to the
+    warning, k0 and the strength; without that warning, to solver.max_iterations."""
+    scene = load_scene(WEAK_AT_DEPTH)
+    assert len(scene.warnings) == 1 and "uniaxial strength 8 kPa" in scene.warnings[0]
+    r = jaxdem.solve(scene)
+    assert r.status == "iteration_limit" and r.unbalanced_blocks
+    assert r.message.startswith("The iteration limit was reached before equilibrium in the "
+                                "initial state: the in-situ stresses are in place at once")
+    assert "(the in_situ warning); change in_situ.k0 or the rock's strength" in r.message
+    assert "Try increasing" not in r.message
+    quiet = jaxdem.solve(dataclasses.replace(scene, warnings=()))
+    assert quiet.status == "iteration_limit"
+    assert "Try increasing solver.max_iterations." in quiet.message
+    assert "in_situ warning" not in quiet.message and "load_steps." not in quiet.message
 
 
 def test_the_command_line_prints_them_on_stderr_and_writes_them_to_result_json(tmp_path, capsys):
