@@ -68,6 +68,10 @@ class BatchResult:
       iterations: (S,) Newton iterations of each sample, summed over increments.
       moving_blocks: (S,) lists: where a sample found a mechanism, the blocks that kept
         moving (:func:`jaxdem.results.moving_blocks`, as ``Result.moving_blocks``); else [].
+      stopped: (S,) where a sample without an answer stopped: ``{"stage": name,
+        "load_factor": f}``, the stage ("loading", "initial" or the file's stage name)
+        and the fraction of its load at the increment that failed (as ``Result.stages``'
+        ``load_factor``); None for a sample that converged.
       timing: ``build_s``, ``compile_s``, ``solve_s`` (s: wall time; ``solve_s`` is
         the time from the first chunk's start to the last one's end, less
         ``compile_s``, the longest any worker waited for programs); ``chunk``
@@ -84,6 +88,7 @@ class BatchResult:
     iterations: np.ndarray
     timing: dict
     moving_blocks: list = dataclasses.field(default_factory=list)
+    stopped: list = dataclasses.field(default_factory=list)
 
 
 @float64
@@ -158,6 +163,7 @@ def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
     status = np.zeros(S, int)
     iterations = np.zeros(S, int)
     moving: list = [[] for _ in range(S)]
+    stopped: list = [None] * S
     compile_by_thread: collections.Counter = collections.Counter()
     placed = done = 0
     t1 = time.perf_counter()
@@ -167,6 +173,7 @@ def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
         iterations[rows] = c["iterations"]
         for i, row in enumerate(rows):
             moving[row] = c["moving"][i]
+            stopped[row] = c["stopped"][i]
         for name, v in c["monitors"].items():
             out_mon.setdefault(name, np.full((S,) + v.shape[1:], np.nan))[rows] = v
         compile_by_thread[c["thread"]] += c["compile_s"]
@@ -185,15 +192,15 @@ def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
         status=[Status.of(s).label for s in status], stable=status != Status.MECHANISM.code,
         converged=ok, iterations=iterations,
         timing=dict(build_s=build_s, compile_s=compile_s, solve_s=solve_s, chunk=size,
-                    devices=placed, workers=workers), moving_blocks=moving)
+                    devices=placed, workers=workers), moving_blocks=moving, stopped=stopped)
 
 
 def _solve_chunk(scene, prepared, theta, rows, size: int, devices, quick: bool,
                  ready=None) -> dict:
     """Solve the samples ``rows`` of ``theta`` as one chunk of ``size`` (padded).
 
-    Returns their ``status``, ``iterations``, ``moving`` blocks and ``monitors``
-    (name -> values in the rows' order), and the chunk's ``compile_s``, the
+    Returns their ``status``, ``iterations``, ``moving`` blocks, where they ``stopped``
+    and ``monitors`` (name -> values in the rows' order), and the chunk's ``compile_s``, the
     ``devices`` it was placed on and the ``thread`` that solved it. ``ready``, if
     given, is set once the chunk's programs are in hand (:class:`_BatchDriver`).
     """
@@ -218,8 +225,9 @@ def _solve_chunk(scene, prepared, theta, rows, size: int, devices, quick: bool,
         v = np.asarray(v, float)[:n]
         monitors[name] = v[:, 0] if layout.monitors[name]["kind"] == "section" else v
     return dict(rows=rows, status=d.status_of[:n], iterations=d.iterations[:n],
-                moving=d.moving[:n], monitors=monitors, compile_s=d.compile_s,
-                devices=len(d.state.verts.sharding.device_set), thread=threading.get_ident())
+                moving=d.moving[:n], stopped=d.stopped[:n], monitors=monitors,
+                compile_s=d.compile_s, devices=len(d.state.verts.sharding.device_set),
+                thread=threading.get_ident())
 
 
 def _solved(solve, chunks: list, workers: int):
@@ -460,6 +468,7 @@ class _BatchDriver:
         self.live = np.ones(C, bool)
         self.iterations = np.zeros(C, int)
         self.moving: list = [[] for _ in range(C)]  # each sample's mechanism, where it found one
+        self.stopped: list = [None] * C  # where each sample that failed stopped
         self.ref = self.dref = self.dstate = self.info = None
         self.records: list = []
         self.bolt_active = np.zeros(model.n_bolts, bool)
@@ -523,6 +532,8 @@ class _BatchDriver:
                 "max_displacement", self.model.max_displacement), float), (self.C,))
             for c in found:
                 self.moving[c] = moving_blocks(travel[c], float(limit[c]))
+        for c in np.nonzero(self.live & (status != Status.CONVERGED.code))[0]:
+            self.stopped[c] = dict(stage=stage, load_factor=k / n)
         self.status_of = np.where(self.live, status, self.status_of)
         self.live &= status == Status.CONVERGED.code
         self.records.append(dict(stage=stage, step=k, load_factor=k / n,

@@ -205,7 +205,7 @@ class SweepResult:
         cols = ["sample"] + [v.path for v in self.variables]
         for name, v in self.batch.monitors.items():
             cols += [f"{name}.ux", f"{name}.uy"] if v.ndim == 2 else [name]
-        return cols + ["stable", "converged", "status"]
+        return cols + ["stable", "converged", "status", "stopped_stage", "stopped_load_factor"]
 
     def rows(self) -> list[dict]:
         """One dict per sample, keyed by :meth:`columns` (the table of sweep.csv)."""
@@ -219,8 +219,10 @@ class SweepResult:
                     row[f"{name}.ux"], row[f"{name}.uy"] = float(v[i, 0]), float(v[i, 1])
                 else:
                     row[name] = float(v[i])
+            stop = (b.stopped[i] if b.stopped else None) or {}
             row.update(stable=bool(b.stable[i]), converged=bool(b.converged[i]),
-                       status=b.status[i])
+                       status=b.status[i], stopped_stage=stop.get("stage", ""),
+                       stopped_load_factor=stop.get("load_factor", float("nan")))
             out.append(row)
         return out
 
@@ -321,13 +323,16 @@ def solve_each(scene, params, theta, progress=None) -> BatchResult:
 
     S = theta.shape[0]
     monitors: dict = {}
-    status, iterations = [], np.zeros(S, int)
+    status, stopped, iterations = [], [], np.zeros(S, int)
     timing = dict(build_s=0.0, compile_s=0.0, solve_s=0.0, chunk=1, devices=1, workers=1)
     for i, row in enumerate(theta):
         res = solve(scene, set=dict(zip(params, (float(x) for x in row), strict=True)))
         for k in ("build_s", "compile_s", "solve_s"):
             timing[k] += res.timing[k]
         status.append(res.status)
+        last = res.stages[-1]
+        stopped.append(None if res.converged else
+                       dict(stage=last["name"], load_factor=last["load_factor"][-1]))
         iterations[i] = sum(sum(st["iterations"]) for st in res.stages)
         for name, m in res.monitors.items():
             value = m["displacement"] if "displacement" in m else m["convergence"]
@@ -340,7 +345,7 @@ def solve_each(scene, params, theta, progress=None) -> BatchResult:
     return BatchResult(params=list(params), theta=np.asarray(theta, float), monitors=monitors,
                        status=list(status), stable=status_arr != "mechanism",
                        converged=status_arr == "converged", iterations=iterations,
-                       timing=timing)
+                       timing=timing, stopped=stopped)
 
 
 def probability_of_instability(batch: BatchResult, z: float = 1.959964) -> dict:
@@ -384,7 +389,8 @@ def _take(batch: BatchResult, rows: slice) -> BatchResult:
     return dataclasses.replace(
         batch, theta=batch.theta[rows], monitors={k: v[rows] for k, v in batch.monitors.items()},
         status=batch.status[rows], stable=batch.stable[rows], converged=batch.converged[rows],
-        iterations=batch.iterations[rows])
+        iterations=batch.iterations[rows], moving_blocks=batch.moving_blocks[rows],
+        stopped=batch.stopped[rows])
 
 
 def check_values(scene, variables, theta) -> None:

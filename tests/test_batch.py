@@ -91,6 +91,22 @@ def test_failed_samples_are_held_and_reported():
                                rtol=1e-12)
 
 
+def test_each_failed_sample_says_where_it_stopped():
+    """The block on a 25 degree incline, its weight applied in 4 load steps: a joint with
+    phi < 25 degrees cannot hold any share of the weight (limit equilibrium does not
+    depend on it), so those samples slide in the first increment, at load factor 1/4, as
+    the single solve reports; the samples that hold have no stop."""
+    scene = parse_scene(block_on_incline(25.0, 30.0, load_steps=4))
+    phi = np.array([15.0, 40.0, 20.0])
+    batch = solve_batch(scene, ["joints.base.friction_deg"], phi[:, None], chunk=2)
+    assert batch.status == ["mechanism", "converged", "mechanism"]
+    assert batch.stopped == [{"stage": "loading", "load_factor": 0.25}, None,
+                             {"stage": "loading", "load_factor": 0.25}]
+    single = jaxdem.solve(scene, set={"joints.base.friction_deg": 15.0})
+    last = single.stages[-1]
+    assert (last["name"], last["load_factor"][-1]) == ("loading", 0.25)
+
+
 def test_bad_batch_input_is_refused(tunnel):
     with pytest.raises(SceneError, match="theta"):
         solve_batch(tunnel, ["joints.set1.kn"], np.array([[1e6], [np.nan]]))

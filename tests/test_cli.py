@@ -515,15 +515,16 @@ def test_sweep_to_csv_without_a_path_returns_the_text(tmp_path):
                         monitors={"top": np.array([[0.0, -1e-3], [0.0, -5e-4]])},
                         status=["converged", "mechanism"], stable=np.array([True, False]),
                         converged=np.array([True, False]), iterations=np.array([3, 9]),
-                        timing={})
+                        timing={}, stopped=[None, {"stage": "loading", "load_factor": 0.5}])
     result = SweepResult(variables=[Variable.parse("joints.j.kn=1e6:2e6")], method="grid",
                          seed=0, batch=batch, tornado={}, probability={}, mode="batched")
     text = result.to_csv()
     assert isinstance(text, str)
     assert text.splitlines() == [
-        "sample,joints.j.kn,top.ux,top.uy,stable,converged,status",
-        "0,1000000.0,0.0,-0.001,True,True,converged",
-        "1,2000000.0,0.0,-0.0005,False,False,mechanism",
+        "sample,joints.j.kn,top.ux,top.uy,stable,converged,status,stopped_stage,"
+        "stopped_load_factor",
+        "0,1000000.0,0.0,-0.001,True,True,converged,,nan",
+        "1,2000000.0,0.0,-0.0005,False,False,mechanism,loading,0.5",
     ]
     path = result.to_csv(tmp_path / "sweep.csv")
     assert path.read_bytes().decode() == text  # the same CSV (csv.writer line ends)
