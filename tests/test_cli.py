@@ -530,6 +530,36 @@ def test_sweep_to_csv_without_a_path_returns_the_text(tmp_path):
     assert path.read_bytes().decode() == text  # the same CSV (csv.writer line ends)
 
 
+def test_the_sweep_summary_says_where_the_samples_without_an_answer_stopped():
+    """Two samples at the iteration limit in the excavation (at 1/2 and 3/4 of it), one
+    in the loading, a mechanism and an equilibrium: the summary groups those without an
+    answer by stage with their load factors (a mechanism is an answer, not listed)."""
+    from jaxdem.batch import BatchResult
+    from jaxdem.cli._summaries import sweep_summary
+    from jaxdem.sweep import SweepResult, Variable, probability_of_instability
+
+    status = ["iteration_limit", "converged", "iteration_limit", "mechanism", "non_finite"]
+    stopped = [{"stage": "excavation", "load_factor": 0.75}, None,
+               {"stage": "excavation", "load_factor": 0.5},
+               {"stage": "excavation", "load_factor": 0.25},
+               {"stage": "loading", "load_factor": 1.0}]
+    arr = np.array(status)
+    batch = BatchResult(params=["joints.j.kn"], theta=np.ones((5, 1)), monitors={},
+                        status=status, stable=arr != "mechanism", converged=arr == "converged",
+                        iterations=np.zeros(5, int),
+                        timing=dict(solve_s=1.0, compile_s=0.5, chunk=5), stopped=stopped)
+    result = SweepResult(variables=[Variable.parse("joints.j.kn=1e6:2e6")], method="grid",
+                         seed=0, batch=batch, tornado={},
+                         probability=probability_of_instability(batch), mode="batched")
+    lines = sweep_summary(result).splitlines()
+    assert lines[0].startswith("5 samples: 1 in equilibrium, 1 mechanisms, 3 without an answer")
+    assert ("2 without an answer stopped in stage excavation at load factor 0.5 to 0.75 "
+            "(sweep.csv: stopped_stage, stopped_load_factor)") in lines
+    assert ("1 without an answer stopped in stage loading at load factor 1 "
+            "(sweep.csv: stopped_stage, stopped_load_factor)") in lines
+    assert not any("0.25" in line for line in lines)
+
+
 # --------------------------------------------------------------------------- --view
 
 

@@ -9,6 +9,7 @@ that need them. Used by :mod:`jaxdem.cli._commands`.
 
 from __future__ import annotations
 
+import collections
 import sys
 from pathlib import Path
 from typing import Any
@@ -166,6 +167,14 @@ def sweep_summary(result: Any) -> str:
              f"{pr['unstable']} mechanisms, {pr['undecided']} without an answer "
              f"({result.mode}: {t['solve_s']:.2f} s solving, {t['compile_s']:.1f} s compiling, "
              f"{t['chunk']} samples per batch, {t.get('workers', 1)} at a time)"]
+    stops = collections.defaultdict(list)  # stage -> load factors of the samples that stopped
+    for status, stop in zip(b.status, b.stopped or [None] * len(b.status), strict=True):
+        if stop is not None and status != "mechanism":
+            stops[stop["stage"]].append(stop["load_factor"])
+    for stage, at in stops.items():
+        span = (f"{min(at):.3g}" if min(at) == max(at) else f"{min(at):.3g} to {max(at):.3g}")
+        lines.append(f"{len(at)} without an answer stopped in stage {stage} at load factor "
+                     f"{span} (sweep.csv: stopped_stage, stopped_load_factor)")
     if pr["decided"]:
         lo, hi = pr["ci95"]
         lines.append(f"probability of instability {pr['p_unstable']:.3f} "
