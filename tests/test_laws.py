@@ -8,7 +8,9 @@ import pytest
 from jaxdem.core.laws import (
     SlotLaw,
     equivalent_stiffness,
+    excess_ratio,
     forces_in_state,
+    held_elastic,
     intact_stiffness,
     mohr_coulomb,
 )
@@ -98,3 +100,47 @@ def test_forces_in_the_law_state_are_the_law_forces_and_their_derivatives():
     bonded = prop._replace(bonded=jnp.ones(5, bool))
     _, fs_bonded = forces_in_state(fn_tr, fs_tr, bonded, failed, stick)
     np.testing.assert_allclose(np.asarray(fs_bonded), np.asarray(fs_tr))
+
+
+def test_a_spring_with_strength_to_lose_is_elastic_in_the_iteration_until_it_fails():
+    """SPEC's law: a contact that fails loses its cohesion and tensile strength. The
+    Newton iteration holds a spring that has them elastic (held_elastic), and the
+    sub-step's commit decides on its excess (excess_ratio) whether it fails: it never
+    slips or opens while it keeps them. Once failed it is frictional, held or not; a
+    clean joint (nothing to lose) slips within the iteration."""
+    fn_tr = jnp.array([10.0, -4.0, 10.0, 10.0, 10.0])
+    fs_tr = jnp.array([9.0, 0.0, 9.0, 9.0, 9.0])
+    active = jnp.ones(5, bool)
+    prop = _prop(c=3.0, t=2.0)
+    prop = prop._replace(cohesion=prop.cohesion.at[4].set(0.0), tension=prop.tension.at[4].set(0.0))
+    failed = jnp.array([False, False, True, False, False])
+    lim = 10.0 * np.tan(np.radians(30.0))          # 5.77 without cohesion, 8.77 with
+    fn, fs, st = mohr_coulomb(fn_tr, fs_tr, held_elastic(prop), failed, active)
+    # beyond c + fn tan(phi) and beyond t: held; failed: slips on friction alone;
+    # slot 3 as slot 0; a clean joint slips
+    np.testing.assert_array_equal(np.asarray(st), [STICK, STICK, SLIP, STICK, SLIP])
+    np.testing.assert_allclose(np.asarray(fs), [9.0, 0.0, lim, 9.0, lim])
+    np.testing.assert_allclose(np.asarray(fn), fn_tr)
+    # The law itself (what a sub-step commits): at its strength, or open in tension.
+    fn, fs, st = mohr_coulomb(fn_tr, fs_tr, prop, failed, active)
+    np.testing.assert_array_equal(np.asarray(st), [SLIP, OPEN, SLIP, SLIP, SLIP])
+    np.testing.assert_allclose(np.asarray(fs), [3.0 + lim, 0.0, lim, 3.0 + lim, lim])
+
+
+def test_excess_ratio_by_hand():
+    """max(|fs| - max(c + fn tan(phi), 0), -fn - t) / (c + t), worked by hand with c = 10,
+    t = 5, tan(phi) = 0.5."""
+    one = jnp.ones(5)
+    prop = SlotLaw(kn=one, ks=one, cohesion=10.0 * one, tension=5.0 * one, tanphi=0.5 * one,
+                   bonded=jnp.array([False, False, False, False, True]))
+    fn = jnp.array([20.0, -8.0, 20.0, 20.0, 20.0])
+    fs = jnp.array([25.0, 0.0, 15.0, 25.0, 25.0])
+    failed = jnp.array([False, False, False, True, False])
+    r = np.asarray(excess_ratio(fn, fs, prop, failed))
+    # shear: 25 - (10 + 10) = 5 over 15; tension: 8 - 5 = 3 over 15 (the shear limit
+    # max(10 - 4, 0) = 6 not reached); within strength: 15 - 20 = -5 over 15; failed and
+    # wall bonds have nothing to lose.
+    np.testing.assert_allclose(r, [5.0 / 15.0, 3.0 / 15.0, -5.0 / 15.0, -1.0, -1.0])
+    # The hysteresis band comes off the excess.
+    np.testing.assert_allclose(np.asarray(excess_ratio(fn, fs, prop, failed, band=1.5))[:2],
+                               [3.5 / 15.0, 1.5 / 15.0])

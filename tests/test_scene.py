@@ -346,6 +346,8 @@ REFUSALS = [
     ("dtype", setting("solver", {"dtype": "float16"}), "solver.dtype", "float64, float32"),
     ("linear solver", setting("solver", {"linear_solver": "lu"}), "solver.linear_solver",
      "auto, dense, sparse, cg"),
+    ("bond failure", setting("solver", {"bond_failure": "event"}), "solver.bond_failure",
+     "substep, events"),
     ("boundary stage on wall", setting("boundaries.0.stage", "dig"), "boundaries.0.stage",
      "only allowed with condition 'traction'"),
     ("spacing 0", setting("joints.j.spacing", 0.0), "joints.j.spacing", "> 0"),

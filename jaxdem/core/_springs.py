@@ -24,7 +24,7 @@ import jax.numpy as jnp
 
 from jaxdem.core._contact import Slots
 from jaxdem.core.kinematics import bolt_length_derivatives, gather_pairs, scatter_pairs
-from jaxdem.core.laws import SlotLaw, forces_in_state, mohr_coulomb
+from jaxdem.core.laws import SlotLaw, forces_in_state, held_elastic, mohr_coulomb
 from jaxdem.core.state import OPEN, SLIP, STICK, Model
 
 #: A slipping spring whose strength is below this fraction of its trial shear force has
@@ -189,7 +189,8 @@ def bolt_rest_length(model: Model, sub: Sub, L, force, state):
     return jnp.where(sub.bolt.active & plastic, L - force / k, sub.bolt.rest)
 
 
-def evaluate(model: Model, sub: Sub, du, frozen, frozen_state, prev, band) -> Springs:
+def evaluate(model: Model, sub: Sub, du, frozen, frozen_state, prev, band,
+             held=True) -> Springs:
     """Spring forces, states and the residual for a trial increment du (:class:`Springs`).
 
     The springs carry the effective normal force fn (compression positive):
@@ -200,7 +201,10 @@ def evaluate(model: Model, sub: Sub, du, frozen, frozen_state, prev, band) -> Sp
     :func:`jaxdem.core.laws.mohr_coulomb`. A ``frozen`` slot carries the forces of
     ``frozen_state`` (:func:`jaxdem.core.laws.forces_in_state`); ``misfit`` (kN/m)
     is how far they are from the law's, |d fn| + |d fs| (zero where not
-    frozen), and ``R_law`` the residual with the law's forces everywhere.
+    frozen), and ``R_law`` the residual with the law's forces everywhere. ``held`` (with
+    ``model.events``): a spring with strength to lose that has not failed is elastic,
+    the law of the Newton iteration (:func:`jaxdem.core.laws.held_elastic`); without
+    it, the law itself (what a sub-step commits: a spring over its strength carries it).
     """
     geo = sub.geo
     dtype = sub.load.dtype
@@ -214,8 +218,9 @@ def evaluate(model: Model, sub: Sub, du, frozen, frozen_state, prev, band) -> Sp
     fn_trial = sub.fn0 - sub.prop.kn * gap
     fs_trial = sub.fs_old + sub.prop.ks * ds
     active = geo.active
-    fn_l, fs_l, st_l = mohr_coulomb(fn_trial, fs_trial, sub.prop, sub.failed, active, prev, band)
-    fn_f, fs_f = forces_in_state(fn_trial, fs_trial, sub.prop, sub.failed, frozen_state, band)
+    law = held_elastic(sub.prop) if held and model.events else sub.prop
+    fn_l, fs_l, st_l = mohr_coulomb(fn_trial, fs_trial, law, sub.failed, active, prev, band)
+    fn_f, fs_f = forces_in_state(fn_trial, fs_trial, law, sub.failed, frozen_state, band)
     fn = jnp.where(frozen, fn_f, fn_l)
     fs = jnp.where(frozen, fs_f, fs_l)
     st = jnp.where(frozen, frozen_state, st_l)
@@ -224,7 +229,7 @@ def evaluate(model: Model, sub: Sub, du, frozen, frozen_state, prev, band) -> Sp
     # coupling's (:func:`slip_coupling`). Taken without the band, a slot stuck within
     # the band above its strength got a coupling though its force is its trial force.
     def shear(fn_t):
-        return forces_in_state(fn_t, fs_trial, sub.prop, sub.failed, st, band)[1]
+        return forces_in_state(fn_t, fs_trial, law, sub.failed, st, band)[1]
 
     dfs_dfn = jax.jvp(shear, (fn_trial,), (jnp.ones_like(fn_trial),))[1]
     # Water presses on a joint's faces whether it is closed or open (within

@@ -5,6 +5,8 @@ the :class:`jaxdem.core._springs.Sub`, from its slots' part :func:`slot_fields_o
 its blocks' part :func:`block_fields_of`, and the :class:`Detection`; what a sub-step
 needed, :class:`Needs`), :func:`pack_slots` (the touching slots that
 the iteration works on), :func:`_newton` (the iteration on du),
+:func:`breaking` (with ``solver.bond_failure = "events"``, the springs that fail: elastic
+in the iteration until loaded beyond their strength, event by event),
 :func:`commit_substep` (move the blocks, commit the springs, global balance),
 :func:`_admissibility` and :func:`substep`, which chains them. The increment
 (:mod:`jaxdem.core.increment`) repeats sub-steps until one converges.
@@ -80,7 +82,7 @@ from jaxdem.core.kinematics import (
     gather_pairs,
     move_blocks,
 )
-from jaxdem.core.laws import slot_properties
+from jaxdem.core.laws import excess_ratio, slot_properties
 from jaxdem.core.loads import water_force
 from jaxdem.core.state import OPEN, SLIP, STICK, Balance, Loads, Model, Snapshot, State
 
@@ -112,6 +114,17 @@ def force_scales(model: Model, sub: Sub):
 #: takes 685 iterations with 12 and 816 with 4 (721 before all three), BENCHMARKS.md
 #: "Issue 30, Newton".
 FREEZE_AFTER = 12
+#: Of the springs loaded beyond their strength at the end of a sub-step, those whose excess
+#: (:func:`jaxdem.core.laws.excess_ratio`) is at least this share of the worst fail
+#: together; the rest wait for the next sub-step (:func:`breaking`). Near 1 is the
+#: sequentially linear ideal, one failure at a time, and costs a sub-step per failure:
+#: at 0.9 (the springs over their strength committed as the iteration left them) seed
+#: example 3 at k0 = 1/3 spent its 131 sub-steps at 56% of the excavation's release
+#: failing two springs at a time (iteration limit, 822 s of solve); at 0.5 it reaches an
+#: answer (BENCHMARKS.md "Twentieth session"). At 0 (every spring over its strength at
+#: once) seed example 3's rock loaded by its weight broke 607 springs in one sub-step at a
+#: quarter of its weight, and its sub-steps stopped converging.
+FAIL_TOGETHER = 0.5
 #: The dtype of Newton's increment du in every scene (see :func:`_newton`).
 WIDE = jnp.float64
 #: A persisting slot keeps its last gap where a new detection differs from it by less
@@ -634,8 +647,24 @@ def block_fields_of(model: Model, state: State, loads: Loads, free) -> dict:
                 stress=state.stress, Kc=cell_stiffness(model, free) if model.ndof == 6 else None)
 
 
-def commit_substep(model: Model, state: State, sub: Sub, pairs, du, ev: Springs):
+def breaking(sub: Sub, ev: Springs, band):
+    """(S,) the springs that fail at the end of a sub-step, from its evaluation ``ev`` in
+    the iteration's law (:func:`jaxdem.core.laws.held_elastic`): of the springs loaded
+    beyond their strength, those whose excess (:func:`jaxdem.core.laws.excess_ratio`) is
+    at least :data:`FAIL_TOGETHER` of the worst. The others are judged again after the
+    next sub-step has carried the failed ones' load elsewhere."""
+    ratio = jnp.where(sub.geo.active, excess_ratio(ev.fn, ev.fs, sub.prop, sub.failed, band),
+                      -1.0)
+    worst = jnp.max(ratio, initial=-1.0)
+    return (ratio > 0) & (ratio >= FAIL_TOGETHER * worst)
+
+
+def commit_substep(model: Model, state: State, sub: Sub, pairs, du, ev: Springs, breaks=None):
     """Move the blocks by du and commit the springs' forces and states.
+
+    ``ev``: the forces and states to commit (:func:`newton_and_commit`); ``breaks``
+    (S,): with ``model.events``, the springs with strength to lose that fail now
+    (:func:`breaking`); None: those that slipped or opened.
 
     Returns (state, balance, snapshot): the new state, the global balance of the free
     blocks (:class:`jaxdem.core.state.Balance`) and the contact snapshot (forces at the
@@ -645,8 +674,17 @@ def commit_substep(model: Model, state: State, sub: Sub, pairs, du, ev: Springs)
     geo, free = sub.geo, sub.free
     st = ev.state
     active = geo.active
+    # A spring fails where it slips or opens (one without strength to lose, a clean
+    # joint, loses nothing: a contact that forms later is failed from the start,
+    # slot_fields_of). Event by event (``breaks`` given, :func:`breaking`), a spring with
+    # strength to lose fails where ``breaks`` says.
+    brittle = (sub.prop.cohesion > 0) | (sub.prop.tension > 0)
     opened = (st == OPEN) & ((sub.prop.tension > 0) | (ev.gap > model.touch_tol))
-    failed_new = sub.failed | (active & ~sub.prop.bonded & ((st == SLIP) | opened))
+    slipped = active & ~sub.prop.bonded & ((st == SLIP) | opened)
+    if breaks is None:
+        failed_new = sub.failed | slipped
+    else:
+        failed_new = sub.failed | (slipped & ~brittle) | breaks
     moved = move_blocks(model, state, du, ev.stress)
     shape = state.fs.shape
     new_state = dataclasses.replace(
@@ -738,10 +776,11 @@ def substep(model: Model, state: State, loads: Loads, warm=False):
     """Detect contacts, iterate to equilibrium at fixed geometry, commit the motion.
 
     ``need.new_failures`` says whether a spring with cohesion or tensile strength
-    failed (first slipped or opened) in this sub-step: it then loses them, which the law
-    applies from the next sub-step on, so the increment cannot end here (a slot that
-    failed would be reported with its intact strength). A clean joint's spring has
-    nothing to lose: its slip asks for no further sub-step.
+    failed in this sub-step (first slipped or opened; with ``model.events``, loaded
+    beyond its strength in the iteration, which holds it elastic until then:
+    :func:`breaking`): it loses them from the next sub-step on, so the increment
+    cannot end here (a slot that failed would be reported with its intact strength). A
+    clean joint's spring has nothing to lose: its slip asks for no further sub-step.
     ``warm``: see :func:`_newton`.
     """
     mdl, sub, st0, pairs, found = prepare_substep(model, state, loads)
@@ -920,13 +959,26 @@ def newton_and_commit(mdl: Model, state: State, sub: Sub, st0, pairs, found: Det
                    clipped=c.clipped | cut)
     du = c.du
     # A converged sub-step returns (and commits) the law's own forces and
-    # states, which balance the blocks; one cut short keeps the frozen ones.
-    ev = evaluate(mdl, packed, du, c.frozen & ~c.converged, c.frozen_state, c.st,
-                  force_scales(mdl, packed)[1])
+    # states, which balance the blocks; one cut short keeps the frozen ones. Event by
+    # event, the springs that fail are found on the iteration's forces (elastic until
+    # they fail), and every spring is committed with the law's: one over its strength
+    # carries that strength (cohesion included: it fails now, or is judged again after
+    # the next sub-step). Committed elastic beyond their strength instead, seed example
+    # 3's rock loaded by its weight took up to 356 Newton iterations an increment
+    # instead of 75 (BENCHMARKS.md "Twentieth session").
+    band = force_scales(mdl, packed)[1]
+    frozen = c.frozen & ~c.converged
+    ev = evaluate(mdl, packed, du, frozen, c.frozen_state, c.st, band)
+    breaks = None
+    if mdl.events:
+        breaks = breaking(packed, ev, band)
+        ev = evaluate(mdl, packed, du, frozen, c.frozen_state, c.st, band, held=False)
     du = du.astype(sub.load.dtype)  # the blocks move in the scene's dtype
     if sid is not None:
         ev = _unpacked(mdl, sub, ev, sid)
-    new_state, balance, snapshot = commit_substep(mdl, state, sub, pairs, du, ev)
+        if breaks is not None:
+            breaks = jnp.zeros(sub.fn0.shape, bool).at[sid].set(breaks, mode="drop")
+    new_state, balance, snapshot = commit_substep(mdl, state, sub, pairs, du, ev, breaks)
     # Only a failure that takes strength away is one: a slot without cohesion or
     # tensile strength (a clean joint) that slips or opens carries the same law after.
     weakened = (new_state.failed.reshape(-1) & ~sub.failed

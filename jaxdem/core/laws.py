@@ -137,6 +137,35 @@ def mohr_coulomb(fn_trial, fs_trial, prop: SlotLaw, failed, active, prev=None, b
     return fn, fs, state
 
 
+def held_elastic(prop: SlotLaw) -> SlotLaw:
+    """``prop`` with every spring that has strength to lose (cohesion or tensile
+    strength) bonded: the law of a sub-step's Newton iteration.
+
+    Such a spring is elastic until it fails (``failed``, which :func:`mohr_coulomb` and
+    :func:`forces_in_state` honour: a failed spring is frictional whatever ``bonded``
+    says); whether it is loaded beyond its strength is decided when the sub-step is
+    committed (:func:`excess_ratio`), and it then fails, losing its cohesion and
+    tensile strength, as SPEC's law says: it never slips or opens with them. A spring
+    with nothing to lose (a clean joint) slips and opens within the iteration.
+    """
+    brittle = (prop.cohesion > 0) | (prop.tension > 0)
+    return prop._replace(bonded=prop.bonded | brittle)
+
+
+def excess_ratio(fn, fs, prop: SlotLaw, failed, band=0.0):
+    """How far a spring with strength to lose is loaded beyond it, relative to that
+    strength: max(|fs| - max(c + fn tan(phi), 0), -fn - t) / (c + t), both times the
+    share (compression positive; the hysteresis ``band`` of :func:`mohr_coulomb`
+    subtracted). Positive only beyond the strength; -1 for a spring with none to lose
+    (failed, a clean joint, a wall bond).
+    """
+    strength = prop.cohesion + prop.tension
+    brittle = ~prop.bonded & ~failed & (strength > 0)
+    limit = jnp.maximum(prop.cohesion + fn * prop.tanphi, 0.0)
+    over = jnp.maximum(jnp.abs(fs) - limit, -fn - prop.tension) - band
+    return jnp.where(brittle, over / jnp.where(brittle, strength, 1.0), -1.0)
+
+
 def forces_in_state(fn_trial, fs_trial, prop: SlotLaw, failed, state, band=0.0):
     """Spring forces (kN/m) with a given state: a frozen slot's, and the held states' tangent.
 

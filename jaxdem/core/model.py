@@ -375,7 +375,8 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
         cell_capacity=cell_capacity, narrow_vertices=narrow_vertices,
         wide_capacity=wide_capacity, touch_capacity=touch_capacity,
         linear_solver=linear_solver_for(s.linear_solver, n_rock * D),
-        n_bolts=len(bolts["k"]), has_water=water is not None, ndof=D,
+        events=s.bond_failure == "events", n_bolts=len(bolts["k"]), has_water=water is not None,
+        ndof=D,
     )
     state = State(
         verts=_put(verts, dtype), centroid=_put(all_cents, dtype),

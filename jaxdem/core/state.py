@@ -50,7 +50,7 @@ def _pytree(data: list[str], meta: list[str]):
         "bolt_comp", "bolt_pullout", "cell_D", "bond_penalty", "verts0", "centroid0",
     ],
     meta=["n_blocks", "n_vertices", "n_big", "use_cells", "cell_capacity", "narrow_vertices",
-          "wide_capacity", "touch_capacity", "linear_solver",
+          "wide_capacity", "touch_capacity", "linear_solver", "events",
           "n_bolts", "has_water", "ndof", "lanes", "slots_per_pair"],
 )
 @dataclasses.dataclass(frozen=True)
@@ -134,6 +134,8 @@ class Model:
       linear_solver: "dense" (LU), "sparse" (SciPy's sparse LU, on the
         host) or "cg" (matrix-free conjugate gradients); "auto" is resolved by
         :func:`jaxdem.core.model.linear_solver_for`.
+      events: springs with cohesion or tensile strength fail event by event
+        (``solver.bond_failure = "events"``: :func:`jaxdem.core._substep.breaking`).
       has_water: the scene has a water table (else no pore-pressure code is compiled).
       lanes: the name of the vmap axis when samples are solved side by side
         (:mod:`jaxdem.batch`), else None: a Newton iteration then skips its
@@ -189,6 +191,7 @@ class Model:
     wide_capacity: int
     touch_capacity: int
     linear_solver: str
+    events: bool = False
     n_bolts: int = 0
     has_water: bool = False
     ndof: int = 3

@@ -24,6 +24,7 @@ from jaxdem.scene._fields import (
     read_table,
 )
 from jaxdem.scene._schema import (
+    BOND_FAILURES,
     DTYPES,
     JOINT_FIELDS,
     LINEAR_SOLVERS,
@@ -70,6 +71,8 @@ def parse_solver(data: dict) -> SolverSettings:
         max_loose_volume=read_field(t, "max_loose_volume", "solver", lo=0),
         max_step_cuts=read_field(t, "max_step_cuts", "solver", default=d.max_step_cuts, lo=0,
                                  hi=MAX_STEP_CUTS, integer=True),
+        bond_failure=(read_string(t["bond_failure"], "solver.bond_failure", BOND_FAILURES)
+                      if "bond_failure" in t else d.bond_failure),
     )
 
 

@@ -258,6 +258,10 @@ class SolverSettings:
     # How many times a stage's load step may be halved where an increment ends at the
     # iteration limit (README, "Load steps cut"); 0: never.
     max_step_cuts: int = 3
+    # How springs with cohesion or tensile strength fail (README, "Strength"): "substep"
+    # (every one that reaches its strength in a geometry update, at its end) or "events"
+    # (elastic until loaded beyond it, the worst first).
+    bond_failure: str = "substep"
 
 
 SUPPORTED_SECTIONS = (
@@ -292,8 +296,10 @@ SOLVER_FIELDS = (
     "loose_blocks",
     "max_loose_volume",
     "max_step_cuts",
+    "bond_failure",
 )
 LOOSE_BLOCKS = ("remove", "stop")
+BOND_FAILURES = ("substep", "events")
 #: The most halvings of a load step (``solver.max_step_cuts``): 1/1024 of it.
 MAX_STEP_CUTS = 10
 MATERIAL_FIELDS = ("E", "nu", "unit_weight", "cohesion", "friction_deg", "tensile_strength")
