@@ -678,12 +678,12 @@ def commit_substep(model: Model, state: State, sub: Sub, pairs, du, ev: Springs,
     # joint, loses nothing: a contact that forms later is failed from the start,
     # slot_fields_of). Event by event (``breaks`` given, :func:`breaking`), a spring with
     # strength to lose fails where ``breaks`` says.
-    brittle = (sub.prop.cohesion > 0) | (sub.prop.tension > 0)
     opened = (st == OPEN) & ((sub.prop.tension > 0) | (ev.gap > model.touch_tol))
     slipped = active & ~sub.prop.bonded & ((st == SLIP) | opened)
     if breaks is None:
         failed_new = sub.failed | slipped
     else:
+        brittle = (sub.prop.cohesion > 0) | (sub.prop.tension > 0)
         failed_new = sub.failed | (slipped & ~brittle) | breaks
     moved = move_blocks(model, state, du, ev.stress)
     shape = state.fs.shape

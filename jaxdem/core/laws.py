@@ -139,14 +139,15 @@ def mohr_coulomb(fn_trial, fs_trial, prop: SlotLaw, failed, active, prev=None, b
 
 def held_elastic(prop: SlotLaw) -> SlotLaw:
     """``prop`` with every spring that has strength to lose (cohesion or tensile
-    strength) bonded: the law of a sub-step's Newton iteration.
+    strength) bonded: the law of a sub-step's Newton iteration where springs fail event
+    by event (``solver.bond_failure = "events"``).
 
     Such a spring is elastic until it fails (``failed``, which :func:`mohr_coulomb` and
     :func:`forces_in_state` honour: a failed spring is frictional whatever ``bonded``
     says); whether it is loaded beyond its strength is decided when the sub-step is
     committed (:func:`excess_ratio`), and it then fails, losing its cohesion and
-    tensile strength, as SPEC's law says: it never slips or opens with them. A spring
-    with nothing to lose (a clean joint) slips and opens within the iteration.
+    tensile strength: it never slips or opens with them. A spring with nothing to lose
+    (a clean joint) slips and opens within the iteration.
     """
     brittle = (prop.cohesion > 0) | (prop.tension > 0)
     return prop._replace(bonded=prop.bonded | brittle)
