@@ -17,8 +17,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scenes import block_on_incline
 
 import jaxdem
+from jaxdem.scene import parse_scene
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 
@@ -62,10 +64,6 @@ def test_a_cohesive_contact_fails_spring_by_spring_as_statics_says(mode, cohesio
     2.52 kPa of limit equilibrium on the whole face, where the cohesion of both would
     count). Both modes of failure agree on it, within 3% either side (measured: held
     at 5.15, slid at 4.95)."""
-    from scenes import block_on_incline
-
-    from jaxdem.scene import parse_scene
-
     r = jaxdem.solve(parse_scene(block_on_incline(35, 30, cohesion=cohesion,
                                                   bond_failure=mode)))
     assert r.stable == holds
