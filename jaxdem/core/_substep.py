@@ -82,7 +82,7 @@ from jaxdem.core.kinematics import (
     gather_pairs,
     move_blocks,
 )
-from jaxdem.core.laws import excess_ratio, slot_properties
+from jaxdem.core.laws import excess_ratio, has_strength, slot_properties
 from jaxdem.core.loads import water_force
 from jaxdem.core.state import OPEN, SLIP, STICK, Balance, Loads, Model, Snapshot, State
 
@@ -683,8 +683,7 @@ def commit_substep(model: Model, state: State, sub: Sub, pairs, du, ev: Springs,
     if breaks is None:
         failed_new = sub.failed | slipped
     else:
-        brittle = (sub.prop.cohesion > 0) | (sub.prop.tension > 0)
-        failed_new = sub.failed | (slipped & ~brittle) | breaks
+        failed_new = sub.failed | (slipped & ~has_strength(sub.prop)) | breaks
     moved = move_blocks(model, state, du, ev.stress)
     shape = state.fs.shape
     new_state = dataclasses.replace(
@@ -981,8 +980,7 @@ def newton_and_commit(mdl: Model, state: State, sub: Sub, st0, pairs, found: Det
     new_state, balance, snapshot = commit_substep(mdl, state, sub, pairs, du, ev, breaks)
     # Only a failure that takes strength away is one: a slot without cohesion or
     # tensile strength (a clean joint) that slips or opens carries the same law after.
-    weakened = (new_state.failed.reshape(-1) & ~sub.failed
-                & ((sub.prop.cohesion > 0) | (sub.prop.tension > 0)))
+    weakened = new_state.failed.reshape(-1) & ~sub.failed & has_strength(sub.prop)
     need = Needs(pairs=found.pairs, cell_full=found.cell_full, slots_full=too_many,
                  touching=touching, new_failures=jnp.any(weakened))
     return new_state, du, c, need, balance, snapshot

@@ -137,6 +137,12 @@ def mohr_coulomb(fn_trial, fs_trial, prop: SlotLaw, failed, active, prev=None, b
     return fn, fs, state
 
 
+def has_strength(prop: SlotLaw):
+    """(S,) the springs with strength to lose: cohesion or tensile strength (a clean
+    joint and a frictional contact have none; whether it is lost yet is ``failed``)."""
+    return (prop.cohesion > 0) | (prop.tension > 0)
+
+
 def held_elastic(prop: SlotLaw) -> SlotLaw:
     """``prop`` with every spring that has strength to lose (cohesion or tensile
     strength) bonded: the law of a sub-step's Newton iteration where springs fail event
@@ -149,8 +155,7 @@ def held_elastic(prop: SlotLaw) -> SlotLaw:
     tensile strength: it never slips or opens with them. A spring with nothing to lose
     (a clean joint) slips and opens within the iteration.
     """
-    brittle = (prop.cohesion > 0) | (prop.tension > 0)
-    return prop._replace(bonded=prop.bonded | brittle)
+    return prop._replace(bonded=prop.bonded | has_strength(prop))
 
 
 def excess_ratio(fn, fs, prop: SlotLaw, failed, band=0.0):
@@ -161,7 +166,7 @@ def excess_ratio(fn, fs, prop: SlotLaw, failed, band=0.0):
     (failed, a clean joint, a wall bond).
     """
     strength = prop.cohesion + prop.tension
-    brittle = ~prop.bonded & ~failed & (strength > 0)
+    brittle = ~prop.bonded & ~failed & has_strength(prop)
     limit = jnp.maximum(prop.cohesion + fn * prop.tanphi, 0.0)
     over = jnp.maximum(jnp.abs(fs) - limit, -fn - prop.tension) - band
     return jnp.where(brittle, over / jnp.where(brittle, strength, 1.0), -1.0)
