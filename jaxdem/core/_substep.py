@@ -82,7 +82,7 @@ from jaxdem.core.kinematics import (
     gather_pairs,
     move_blocks,
 )
-from jaxdem.core.laws import excess_ratio, has_strength, slot_properties
+from jaxdem.core.laws import excess_ratio, has_strength, overload, slot_properties
 from jaxdem.core.loads import water_force
 from jaxdem.core.state import OPEN, SLIP, STICK, Balance, Loads, Model, Snapshot, State
 
@@ -757,12 +757,8 @@ def _admissibility(model: Model, sub: Sub, ev: Springs):
     size = jnp.minimum(size[a], size[b])
     size = jnp.where(jnp.isfinite(size), size, jnp.maximum(model.radius[a], model.radius[b]))
     depth = jnp.where(active, jnp.maximum(-ev.gap, 0.0), 0.0)
-    fn, fs = ev.fn, ev.fs
     bonded = prop.bonded & ~sub.failed
-    c = jnp.where(sub.failed, 0.0, prop.cohesion)
-    t_cap = jnp.where(sub.failed, 0.0, prop.tension)
-    limit = jnp.maximum(c + fn * prop.tanphi, 0.0)
-    over = jnp.maximum(jnp.abs(fs) - limit, -fn - t_cap)
+    over = overload(ev.fn, ev.fs, prop, sub.failed)
     scale = jnp.where(sub.free, block_scale(model, sub, ev), 0.0)
     scale = jnp.maximum(jnp.maximum(scale[a], scale[b]), model.f_ref * 1e-3)
     excess = jnp.where(active & ~bonded & (ev.state != OPEN), jnp.maximum(over, 0.0) / scale,

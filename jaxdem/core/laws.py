@@ -158,17 +158,26 @@ def held_elastic(prop: SlotLaw) -> SlotLaw:
     return prop._replace(bonded=prop.bonded | has_strength(prop))
 
 
+def overload(fn, fs, prop: SlotLaw, failed):
+    """(S,) kN/m: how far the forces (fn, fs) of each spring are beyond its strength,
+    max(|fs| - max(c + fn tan(phi), 0), -fn - t) (c and t times the share, zero once
+    failed; compression positive): positive beyond Mohr-Coulomb or the tension cut-off,
+    whichever is passed further."""
+    c = jnp.where(failed, 0.0, prop.cohesion)
+    t_cap = jnp.where(failed, 0.0, prop.tension)
+    limit = jnp.maximum(c + fn * prop.tanphi, 0.0)
+    return jnp.maximum(jnp.abs(fs) - limit, -fn - t_cap)
+
+
 def excess_ratio(fn, fs, prop: SlotLaw, failed, band=0.0):
     """How far a spring with strength to lose is loaded beyond it, relative to that
-    strength: max(|fs| - max(c + fn tan(phi), 0), -fn - t) / (c + t), both times the
-    share (compression positive; the hysteresis ``band`` of :func:`mohr_coulomb`
-    subtracted). Positive only beyond the strength; -1 for a spring with none to lose
-    (failed, a clean joint, a wall bond).
+    strength: :func:`overload` / (c + t), both times the share (the hysteresis ``band``
+    of :func:`mohr_coulomb` subtracted). Positive only beyond the strength; -1 for a
+    spring with none to lose (failed, a clean joint, a wall bond).
     """
     strength = prop.cohesion + prop.tension
     brittle = ~prop.bonded & ~failed & has_strength(prop)
-    limit = jnp.maximum(prop.cohesion + fn * prop.tanphi, 0.0)
-    over = jnp.maximum(jnp.abs(fs) - limit, -fn - prop.tension) - band
+    over = overload(fn, fs, prop, failed) - band
     return jnp.where(brittle, over / jnp.where(brittle, strength, 1.0), -1.0)
 
 
