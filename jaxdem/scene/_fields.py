@@ -115,6 +115,13 @@ def read_string(value: Any, path: str, choices: tuple[str, ...] | None = None) -
     return value
 
 
+def read_option(t: dict, key: str, path: str, choices: tuple[str, ...] | None = None,
+                default: str | None = None) -> str | None:
+    """The string field ``key`` of table ``t`` (one of ``choices`` where given), or
+    ``default`` where the table has none."""
+    return read_string(t[key], f"{path}.{key}", choices) if key in t else default
+
+
 def read_point(value: Any, path: str) -> np.ndarray:
     if isinstance(value, np.ndarray):  # programmatic scenes
         value = value.tolist()

@@ -21,6 +21,7 @@ from jaxdem.scene._fields import (
     read_array_of_tables,
     read_field,
     read_number,
+    read_option,
     read_point,
     read_string,
     read_table,
@@ -121,7 +122,7 @@ def parse_in_situ(data: dict, top: float) -> InSitu | None:
         return None
     p = "in_situ"
     t = read_table(data["in_situ"], p, IN_SITU_FIELDS)
-    mode = read_string(t["mode"], f"{p}.mode", MODES) if "mode" in t else "gravity"
+    mode = read_option(t, "mode", p, MODES, "gravity")
     if mode == "gravity":
         for key in ("sigma_xx", "sigma_yy", "sigma_xy"):
             if key in t:

@@ -19,8 +19,8 @@ from jaxdem.scene._fields import (
     read_count,
     read_field,
     read_number,
+    read_option,
     read_point,
-    read_string,
     read_table,
 )
 from jaxdem.scene._schema import (
@@ -44,7 +44,6 @@ DIP_SIDES = ("left", "right")
 def parse_solver(data: dict) -> SolverSettings:
     t = read_table(data.get("solver", {}), "solver", SOLVER_FIELDS)
     d = SolverSettings()
-    dtype = read_string(t["dtype"], "solver.dtype", DTYPES) if "dtype" in t else d.dtype
     return SolverSettings(
         load_steps=read_count(t, "load_steps", "solver", default=d.load_steps),
         tolerance=read_field(
@@ -52,7 +51,7 @@ def parse_solver(data: dict) -> SolverSettings:
         ),
         max_iterations=read_count(t, "max_iterations", "solver", default=d.max_iterations),
         max_displacement=read_field(t, "max_displacement", "solver", lo=0, lo_open=True),
-        dtype=dtype,
+        dtype=read_option(t, "dtype", "solver", DTYPES, d.dtype),
         regularization=read_field(
             t,
             "regularization",
@@ -64,15 +63,13 @@ def parse_solver(data: dict) -> SolverSettings:
             hi_open=True,
         ),
         step_length=read_field(t, "step_length", "solver", lo=0, lo_open=True),
-        linear_solver=(read_string(t["linear_solver"], "solver.linear_solver", LINEAR_SOLVERS)
-                       if "linear_solver" in t else d.linear_solver),
-        loose_blocks=(read_string(t["loose_blocks"], "solver.loose_blocks", LOOSE_BLOCKS)
-                      if "loose_blocks" in t else d.loose_blocks),
+        linear_solver=read_option(t, "linear_solver", "solver", LINEAR_SOLVERS,
+                                  d.linear_solver),
+        loose_blocks=read_option(t, "loose_blocks", "solver", LOOSE_BLOCKS, d.loose_blocks),
         max_loose_volume=read_field(t, "max_loose_volume", "solver", lo=0),
         max_step_cuts=read_field(t, "max_step_cuts", "solver", default=d.max_step_cuts, lo=0,
                                  hi=MAX_STEP_CUTS, integer=True),
-        bond_failure=(read_string(t["bond_failure"], "solver.bond_failure", BOND_FAILURES)
-                      if "bond_failure" in t else d.bond_failure),
+        bond_failure=read_option(t, "bond_failure", "solver", BOND_FAILURES, d.bond_failure),
     )
 
 

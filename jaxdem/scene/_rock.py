@@ -30,6 +30,7 @@ from jaxdem.scene._fields import (
     read_array_of_tables,
     read_field,
     read_name,
+    read_option,
     read_point,
     read_string,
     read_table,
@@ -94,7 +95,7 @@ def parse_blocks(
         fixed = t.get("fixed", False)
         if not isinstance(fixed, bool):
             raise SceneError(f"{p}.fixed", f"must be true or false (got {fmt(fixed)})")
-        joint = read_string(t["joint"], f"{p}.joint") if "joint" in t else None
+        joint = read_option(t, "joint", p)
         blocks.append(Block(vertices=v, material=mat, fixed=fixed, joint=joint))
     return tuple(blocks)
 
