@@ -460,6 +460,37 @@ def moving_blocks(travel, max_displacement: float) -> list[int]:
     return [int(i) for i in np.nonzero(np.asarray(travel) > 0.1 * max_displacement)[0]]
 
 
+#: A mechanism whose moving blocks have each moved, net, less than this share of
+#: ``solver.max_displacement`` went back and forth: their path passed the limit, their
+#: places did not (:func:`back_and_forth`).
+BACK_AND_FORTH = 0.25
+
+
+def back_and_forth(moving, u, rot, radius, max_displacement: float) -> str | None:
+    """The warning for a mechanism that is a path, not a collapse, else None.
+
+    A mechanism is found where a block's path in one increment passes
+    ``max_displacement`` (``moving``: their ids, :func:`moving_blocks`). A block that
+    falls or slides is as far from where it was, less the turns of its course; one whose
+    contacts chatter in the iteration goes back and forth, and its path can pass the
+    limit where it has moved millimetres. Net movement is measured as the path is (a
+    block that tumbles travels by its rotation too): |u| + |rotation| x radius (``u``
+    (n, 2) m and ``rot`` (n,) rad from where displacements are measured, ``radius`` (n,)
+    each block's largest centroid-to-vertex distance, m).
+    """
+    if not moving:
+        return None
+    ids = np.asarray(moving)
+    net = np.hypot(u[ids, 0], u[ids, 1]) + np.abs(rot[ids]) * radius[ids]
+    if net.max() >= BACK_AND_FORTH * max_displacement:
+        return None
+    k = int(np.argmax(net))
+    return (f"unstable by path alone: the moving blocks went back and forth, the furthest "
+            f"(block {int(ids[k])}) {1e3 * net[k]:.3g} mm from where it was for a path over "
+            f"{max_displacement:.3g} m; a chatter of the iteration, not a collapse that "
+            f"shows: review (README, \"Known limits\")")
+
+
 def stage_frame(scene, model, layout, state, ref, info, bolt_active, name: str, index: int,
                 increments: int) -> dict[str, Any]:
     """Host copies of the state at the end of a stage (or where the analysis stopped in it),
@@ -667,6 +698,9 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
             f"{lead} joint slip of {1e3 * r['slip']:.0f} mm "
             f"in one increment (load step {r['step']} of stage {r['stage']}) at blocks {pair}: "
             f"more than {LARGE_SLIP:.0%} of the block's size; review")
+    chatter = back_and_forth(moving, u, rot, np.asarray(model.radius), max_disp)
+    if chatter:
+        warnings.append(chatter)
     verts = np.asarray(state.verts)
     nv = np.asarray(model.nv)
     geometry = {

@@ -26,6 +26,7 @@ import jaxdem
 from jaxdem import geometry
 from jaxdem.core import model as model_mod
 from jaxdem.core._contact import broad_phase, narrow_phase
+from jaxdem.results import back_and_forth
 from jaxdem.scene import parse_scene
 
 DATA = Path(__file__).resolve().parents[1] / "data"
@@ -376,3 +377,28 @@ def test_a_reported_mechanism_has_moved_as_far_as_its_path():
     wedge = [i for i in r.moving_blocks if spin[i] < 0.01
              and abs(np.degrees(np.arctan2(-u[i][1], u[i][0])) - 60.0) <= 3.0]
     assert len(wedge) >= 3
+
+
+def test_a_mechanism_that_moved_as_far_as_its_path_is_not_called_a_path_alone():
+    """The two-set tunnel's wedge slides into the bench (above): a collapse, so its
+    result carries no "unstable by path alone" warning."""
+    r = _two_sets_tunnel()
+    assert r.status == "mechanism"
+    assert not [w for w in r.warnings if "by path alone" in w]
+
+
+def test_a_mechanism_of_blocks_that_went_back_and_forth_is_said_to_be_a_path():
+    """:func:`jaxdem.results.back_and_forth` on hand-made motions (max_displacement 1.2 m,
+    the threshold a quarter of it, 0.3 m): net movement is |u| + |rotation| x radius,
+    as a path is measured (a block that tumbles travels by its turn)."""
+    u = np.array([[0.003, 0.0], [0.0, -0.2], [0.9, -0.5], [0.0, 0.0]])
+    rot = np.array([0.005, 0.0, 0.0, 0.5])
+    radius = np.array([0.2, 1.0, 1.0, 1.0])
+    # Block 0 moved 3 mm and turned 5 mrad (1 mm at its corners), block 1 0.2 m: a path.
+    said = back_and_forth([0, 1], u, rot, radius, 1.2)
+    assert said and "block 1" in said and "200 mm" in said
+    # Block 2 went 1.03 m: a collapse, whatever block 0 did.
+    assert back_and_forth([0, 2], u, rot, radius, 1.2) is None
+    # Block 3 stayed where it was and turned over by 0.5 rad at a 1 m radius: 0.5 m.
+    assert back_and_forth([0, 3], u, rot, radius, 1.2) is None
+    assert back_and_forth([], u, rot, radius, 1.2) is None
