@@ -473,10 +473,11 @@ def back_and_forth(moving, u, rot, radius, max_displacement: float) -> str | Non
     ``max_displacement`` (``moving``: their ids, :func:`moving_blocks`). A block that
     falls or slides is as far from where it was, less the turns of its course; one whose
     contacts chatter in the iteration goes back and forth, and its path can pass the
-    limit where it has moved millimetres. Net movement is measured as the path is (a
-    block that tumbles travels by its rotation too): |u| + |rotation| x radius (``u``
-    (n, 2) m and ``rot`` (n,) rad from where displacements are measured, ``radius`` (n,)
-    each block's largest centroid-to-vertex distance, m).
+    limit where it has moved centimetres. Net movement is measured as the path is
+    (:func:`jaxdem.core.kinematics.block_travel`: a block that tumbles travels by its
+    rotation too): |u| + |rotation| x radius (``u`` (n, 2) m and ``rot`` (n,) rad from
+    where displacements are measured, ``radius`` (n,) each block's largest
+    centroid-to-vertex distance, m).
     """
     if not moving:
         return None
