@@ -41,8 +41,17 @@ from jaxdem.core._substep import (
     prepare_substep,
     slot_fields_of,
 )
+from jaxdem.core.laws import has_strength
 from jaxdem.core.loads import in_situ_preload, release_forces
-from jaxdem.core.state import SNAPSHOT_FLOATS, Loads, Model, Snapshot, State, float_part
+from jaxdem.core.state import (
+    SNAPSHOT_FLOATS,
+    STICK,
+    Loads,
+    Model,
+    Snapshot,
+    State,
+    float_part,
+)
 
 # Model fields that scene parameters change smoothly (see jaxdem.differentiable).
 SMOOTH_MODEL = ("joint_kn", "joint_ks", "joint_c", "joint_t", "joint_tanphi", "kn_inv", "ks_inv",
@@ -239,6 +248,16 @@ def substep_tangent(model: Model, state: State, loads: Loads, dmodel, dstate, dl
     new_state, du, converged = forward[0], forward[1], forward[2].converged
     held = new_state.cstate.reshape(-1)
     all_held = jnp.ones(held.shape, bool)
+    # Event by event (``model.events``) the iteration balanced the blocks with the
+    # springs that have strength to lose held elastic (stuck: :func:`jaxdem.core.laws.
+    # held_elastic`), and committed the law's forces: one loaded beyond its strength
+    # carries it (in ``held``, slipping or open). The equilibrium is differentiated in the
+    # iteration's states, the commit in the law's. Both in the committed states, the
+    # equilibrium was another one: the tunnel's derivatives were 1e-3 off.
+    iterated = held
+    if model.events:
+        iterated = jnp.where(has_strength(sub.prop) & ~sub.failed & sub.geo.active, STICK,
+                             held)
     leaves, tree = jax.tree.flatten(sub)
     smooth = [jnp.issubdtype(x.dtype, jnp.inexact) for x in leaves]
 
@@ -258,8 +277,11 @@ def substep_tangent(model: Model, state: State, loads: Loads, dmodel, dstate, dl
         # The held states with the forward's band: a slot stuck within the band
         # above its strength carries its trial force there, and here too.
         band = jax.lax.stop_gradient(force_scales(mdl, sb)[1])
-        ev = evaluate(mdl, sb, x, all_held, held, held, band)
-        new, _, snap = commit_substep(mdl, s, sb, pairs, x, ev)
+        ev = evaluate(mdl, sb, x, all_held, iterated, iterated, band)
+        committed = ev
+        if model.events:
+            committed = evaluate(mdl, sb, x, all_held, held, held, band, held=False)
+        new, _, snap = commit_substep(mdl, s, sb, pairs, x, committed)
         return (ev.R, _fields(new, STATE_FLOATS), float_part(snap)), ev
 
     # Linearised apart in the parameters (at the converged du) and in du: each
