@@ -33,7 +33,8 @@ Documented extensions and choices:
   default "auto": dense LU up to 600 unknowns (1,800 on an accelerator), else
   sparse direct on a CPU
   and matrix-free CG on an accelerator or in a batch) and ``bond_failure``
-  ("substep" or "events": how springs with cohesion or tensile strength fail) are
+  ("events", the default, or "substep": how springs with cohesion or tensile strength
+  fail) are
   jaxdem extensions.
 - ``[[discontinuities]] joint`` may be left out: the line then takes the scene's
   default joint.

@@ -258,10 +258,10 @@ class SolverSettings:
     # How many times a stage's load step may be halved where an increment ends at the
     # iteration limit (README, "Load steps cut"); 0: never.
     max_step_cuts: int = 3
-    # How springs with cohesion or tensile strength fail (README, "Strength"): "substep"
-    # (every one that reaches its strength in a geometry update, at its end) or "events"
-    # (elastic until loaded beyond it, the worst first).
-    bond_failure: str = "substep"
+    # How springs with cohesion or tensile strength fail (README, "Strength"): "events"
+    # (elastic until loaded beyond it, the worst first) or "substep" (every one that
+    # reaches its strength in a geometry update, at its end).
+    bond_failure: str = "events"
 
 
 SUPPORTED_SECTIONS = (
