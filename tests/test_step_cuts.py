@@ -91,7 +91,7 @@ def test_where_the_shortest_step_fails_the_analysis_stops_at_the_last_equilibriu
 @pytest.mark.parametrize("value", [-1, 11, 1.5, "2"])
 def test_bad_max_step_cuts_is_refused_with_the_field_named(tmp_path, value):
     with pytest.raises(SceneError, match=r"solver\.max_step_cuts"):
-        _staged().with_overrides({"solver.max_step_cuts": value})
+        jaxdem.load_scene(STAGED).with_overrides({"solver.max_step_cuts": value})
     text = STAGED.read_text()
     assert "[solver]\n" in text
     path = tmp_path / "bad.toml"
