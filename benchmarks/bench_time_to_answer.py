@@ -345,6 +345,18 @@ COLS = ("wall", "start", "load", "imp", "build", "trace", "compile", "solve", "o
         "answer", "figures")
 
 
+def cpu_model() -> str:
+    """The processor's model name (the same kind of machine can be twice as fast or slow:
+    BENCHMARKS.md, "Twenty-fourth session")."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "processor unknown"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", nargs="+", default=["incline", "grid10", "grid20", "demo", "tunnel"])
@@ -354,7 +366,7 @@ def main() -> None:
     paths = write_scenes()
     import jax
 
-    print(f"# {platform.machine()}, {os.cpu_count()} cores, jax {jax.__version__}, "
+    print(f"# {platform.machine()}, {cpu_model()}, {os.cpu_count()} cores, jax {jax.__version__}, "
           f"python {platform.python_version()}; medians of {args.repeats} runs (s); "
           f"figures {'off' if args.no_figures else 'on'}")
     head = f"{'case':>8} {'blocks':>6} {'cache':>7} " + " ".join(f"{c:>7}" for c in COLS)
