@@ -6,7 +6,9 @@ the sub-step at the start of one increment, each jitted alone, on that increment
 model, state and loads: the broad phase, the narrow phase, the whole detection
 (``prepare_substep``), the packing of the touching slots, the Newton iteration, one
 iteration's assembly (springs summed into the blocks of the touching pairs, the
-triplets CHOLMOD gets), the final evaluation, the corner bound, and the whole sub-step.
+triplets CHOLMOD gets), the final evaluation, the corner bound, Newton with everything
+after it (``newton_and_commit``), the commit alone (the blocks moved, the springs'
+history laid out over every slot, the global balance), and the whole sub-step.
 Medians of ``--repeats`` calls, ms. The accuracy of what is timed is the solver's own
 (the whole sub-step is the solver's); the table also gives the sizes that set the
 costs (pairs, touching pairs and slots, places).
@@ -100,6 +102,18 @@ def main() -> None:
         lambda m, sb, s, c, du: _substep.corner_bound(m, sb, s.centroid, c, du,
                                                       packed.geo.a.shape[0]),
         mdl2, sub, state, found.corners, newton.du)))
+    rows.append(("Newton and commit", timed(
+        lambda m, s, sb, st, p, f: _substep.newton_and_commit(m, s, sb, st, p, f),
+        mdl2, state, sub, st0, pairs, found)))
+    # The evaluation laid out over every slot, as the commit gets it (none to lay out
+    # where every slot has a place: pack_slots gives no indices).
+    laid = ev if sid is None else jax.jit(_substep._unpacked)(mdl2, sub, ev, sid)
+
+    def commit(m, s, sb, p, du, e):
+        return _substep.commit_substep(m, s, sb, p, du.astype(sb.load.dtype), e)
+
+    rows.append(("commit (move, springs, balance)",
+                 timed(commit, mdl2, state, sub, pairs, newton.du, laid)))
     rows.append(("whole sub-step", timed(_substep.substep, model, state, loads)))
 
     S = st0.shape[0]

@@ -1,0 +1,137 @@
+"""What a cold run's compilation is made of: the increment program and its parts, traced,
+lowered and compiled on their own, and where its operations come from (issue 30's cold
+targets).
+
+For a scene's first increment (its model, state and loads as the solver builds them),
+three programs of growing scope:
+
+- ``detection``: :func:`jaxdem.core._substep.prepare_substep` (broad and narrow phase,
+  the slots' fields);
+- ``sub-step``: :func:`jaxdem.core._substep.substep` (detection, the Newton iteration,
+  the commit);
+- ``increment``: :func:`jaxdem.core.increment.increment` (the loop of sub-steps, what the
+  solver compiles).
+
+Each is traced and lowered once (s), then compiled ``--repeats`` times at each LLVM
+level asked for, alternating programs, under a distinct value of an XLA option that
+changes no code (so that JAX's caches never answer; the median is printed, s). Level 0 is
+what a brief single solve compiles with (``QUICK_COMPILER_OPTIONS``), level 1 the rest
+(``CPU_COMPILER_OPTIONS``). Then the increment's StableHLO operations counted by the
+``jaxdem`` module whose source line made them (the innermost frame in the package; the
+count is of operations before XLA's passes, the measure of program size that tracing,
+lowering and compiling all grow with). Timings are noisy: compare runs made side by side.
+The accuracy of what is timed is not at stake (nothing is solved).
+
+    PYTHONPATH=. python benchmarks/bench_compile.py jaxdem/data/demo.toml
+    PYTHONPATH=. python benchmarks/bench_compile.py examples/seed_example2_tunnel.toml --levels 1
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import os
+import platform
+import re
+import statistics
+import time
+from pathlib import Path
+
+
+def cpu_model() -> str:
+    """The processor's model name, as /proc/cpuinfo gives it."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "processor unknown"
+
+
+def ops_by_module(text: str) -> collections.Counter:
+    """StableHLO operations of ``text`` (``Lowered.as_text(debug_info=True)``) counted by the
+    jaxdem module (``core/_substep.py``, ...) of the innermost frame that made them; "other"
+    where no frame of the package is recorded (JAX's own expansions)."""
+    alias = dict(re.findall(r"^(#loc\d+) = loc\((.*)\)$", text, re.M))
+
+    def module(ref: str, depth: int = 0) -> str | None:
+        s = alias.get(ref, ref)
+        m = re.search(r'"[^"]*/jaxdem/([^"]+\.py)":\d+', s)
+        if m:
+            return m.group(1)
+        if depth < 32:
+            for inner in re.findall(r"#loc\d+", s):
+                found = module(inner, depth + 1)
+                if found:
+                    return found
+        return None
+
+    counts = collections.Counter()
+    for line in text.splitlines():
+        if "stablehlo." in line and " = " in line:
+            m = re.search(r"loc\((#loc\d+)\)\s*$", line)
+            counts[(module(m.group(1)) if m else None) or "other"] += 1
+    return counts
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("scene")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--levels", type=int, nargs="+", default=[0, 1])
+    args = parser.parse_args()
+
+    import jax
+    import jax.numpy as jnp
+
+    import jaxdem
+    from jaxdem import solver
+    from jaxdem.core import _substep, compile_cache
+    from jaxdem.core import model as model_mod
+    from jaxdem.core.increment import increment
+
+    jaxdem.config.configure()
+    scene = jaxdem.load_scene(args.scene)
+    model, state, layout = model_mod.build(scene)
+    data = solver.scene_data(scene, layout)
+    loads, _ = solver._Driver(model, state, layout, data, None).loads(data.weight + data.traction)
+    programs = {
+        "detection": lambda m, s, lo: _substep.prepare_substep(m, s, lo),
+        "sub-step": lambda m, s, lo: _substep.substep(m, s, lo, jnp.array(False)),
+        "increment": lambda m, s, lo: increment(m, s, lo),
+    }
+    lowered, lower_s = {}, {}
+    for name, fn in programs.items():
+        t = time.perf_counter()
+        lowered[name] = jax.jit(fn).lower(model, state, loads)
+        lower_s[name] = time.perf_counter() - t
+    times = {(name, level): [] for name in programs for level in args.levels}
+    salt = time.time_ns() % 2**30  # never a value an earlier run compiled under
+    for _ in range(args.repeats):
+        for level in args.levels:
+            for name, low in lowered.items():
+                salt += 1
+                options = {**compile_cache.CPU_COMPILER_OPTIONS,
+                           "xla_backend_optimization_level": level,
+                           "xla_debug_buffer_assignment_show_max": salt}
+                t = time.perf_counter()
+                low.compile(compiler_options=options)
+                times[name, level].append(time.perf_counter() - t)
+
+    print(f"# {args.scene}: {model.n_blocks} blocks (size class), solver {model.linear_solver}; "
+          f"{platform.machine()}, {cpu_model()}, {os.cpu_count()} cores, jax {jax.__version__}; "
+          f"compile: medians of {args.repeats}, s")
+    head = "".join(f" {'level ' + str(level):>9}" for level in args.levels)
+    print(f"{'program':>10} {'ops':>6} {'chars':>8} {'lower':>7}{head}")
+    for name, low in lowered.items():
+        ops = sum(ops_by_module(low.as_text(debug_info=True)).values())
+        cells = "".join(f" {statistics.median(times[name, level]):9.2f}" for level in args.levels)
+        print(f"{name:>10} {ops:6d} {len(low.as_text()):8d} {lower_s[name]:7.2f}{cells}")
+    print("# the increment's operations by the module that made them")
+    for module, n in ops_by_module(lowered["increment"].as_text(debug_info=True)).most_common():
+        print(f"{module:>24} {n:6d}")
+
+
+if __name__ == "__main__":
+    main()
