@@ -9,8 +9,10 @@ three programs of growing scope:
   the slots' fields);
 - ``sub-step``: :func:`jaxdem.core._substep.substep` (detection, the Newton iteration,
   the commit);
-- ``increment``: :func:`jaxdem.core.increment.increment` (the loop of sub-steps, what the
-  solver compiles).
+- ``bare loop``: the sub-step in a ``lax.while_loop`` of five that carries the state alone
+  (the floor for a loop of sub-steps: what the loop itself costs the compiler);
+- ``increment``: :func:`jaxdem.core.increment.increment` (the loop of sub-steps with what
+  it reports, what the solver compiles).
 
 Each is traced and lowered once (s), then compiled ``--repeats`` times at each LLVM
 level asked for, alternating programs, under a distinct value of an XLA option that
@@ -96,9 +98,16 @@ def main() -> None:
     model, state, layout = model_mod.build(scene)
     data = solver.scene_data(scene, layout)
     loads, _ = solver._Driver(model, state, layout, data, None).loads(data.weight + data.traction)
+    def bare_loop(m, s, lo):
+        def body(c):
+            return c[0] + 1, _substep.substep(m, c[1], lo, jnp.array(False))[0]
+
+        return jax.lax.while_loop(lambda c: c[0] < 5, body, (jnp.zeros((), jnp.int32), s))[1]
+
     programs = {
         "detection": lambda m, s, lo: _substep.prepare_substep(m, s, lo),
         "sub-step": lambda m, s, lo: _substep.substep(m, s, lo, jnp.array(False)),
+        "bare loop": bare_loop,
         "increment": lambda m, s, lo: increment(m, s, lo),
     }
     lowered, lower_s = {}, {}
