@@ -37,18 +37,8 @@ import platform
 import re
 import statistics
 import time
-from pathlib import Path
 
-
-def cpu_model() -> str:
-    """The processor's model name, as /proc/cpuinfo gives it."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "processor unknown"
+from bench_time_to_answer import cpu_model  # this folder is on the path: run as a script
 
 
 def ops_by_module(text: str) -> collections.Counter:
