@@ -3,7 +3,7 @@ lowered and compiled on their own, and where its operations come from (issue 30'
 targets).
 
 For a scene's first increment (its model, state and loads as the solver builds them),
-three programs of growing scope:
+four programs of growing scope:
 
 - ``detection``: :func:`jaxdem.core._substep.prepare_substep` (broad and narrow phase,
   the slots' fields);
@@ -88,6 +88,7 @@ def main() -> None:
     model, state, layout = model_mod.build(scene)
     data = solver.scene_data(scene, layout)
     loads, _ = solver._Driver(model, state, layout, data, None).loads(data.weight + data.traction)
+
     def bare_loop(m, s, lo):
         def body(c):
             return c[0] + 1, _substep.substep(m, c[1], lo, jnp.array(False))[0]
