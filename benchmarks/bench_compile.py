@@ -3,7 +3,7 @@ lowered and compiled on their own, and where its operations come from (issue 30'
 targets).
 
 For a scene's first increment (its model, state and loads as the solver builds them),
-four programs of growing scope:
+these programs:
 
 - ``detection``: :func:`jaxdem.core._substep.prepare_substep` (broad and narrow phase,
   the slots' fields);
@@ -11,10 +11,17 @@ four programs of growing scope:
   the commit);
 - ``bare loop``: the sub-step in a ``lax.while_loop`` of five that carries the state alone
   (the floor for a loop of sub-steps: what the loop itself costs the compiler);
+- ``exit loop``: the same, ending where the sub-step converged, its step was not finite,
+  a block travelled beyond ``max_displacement``, or after five (a trip count known only as
+  it runs, as the increment's);
+- ``fixed loop``: the same sub-steps and exit in a ``lax.fori_loop`` of 50 whose body is a
+  ``lax.cond`` on "not yet ended" (a trip count XLA knows);
 - ``increment``: :func:`jaxdem.core.increment.increment` (the loop of sub-steps with what
   it reports, what the solver compiles).
 
-Each is traced and lowered once (s), then compiled ``--repeats`` times at each LLVM
+The loops also run (the median of 3 runs of the compiled program at the last level, s;
+their answers compared: the blocks' centroids the same to the last bit or not). Each is
+traced and lowered once (s), then compiled ``--repeats`` times at each LLVM
 level asked for, alternating programs, under a distinct value of an XLA option that
 changes no code (so that JAX's caches never answer; the median is printed, s). Level 0 is
 what a brief single solve compiles with (``QUICK_COMPILER_OPTIONS``), level 1 the rest
@@ -82,6 +89,7 @@ def main() -> None:
     from jaxdem.core import _substep, compile_cache
     from jaxdem.core import model as model_mod
     from jaxdem.core.increment import increment
+    from jaxdem.core.kinematics import block_travel
 
     jaxdem.config.configure()
     scene = jaxdem.load_scene(args.scene)
@@ -95,10 +103,35 @@ def main() -> None:
 
         return jax.lax.while_loop(lambda c: c[0] < 5, body, (jnp.zeros((), jnp.int32), s))[1]
 
+    def outcome_step(m, lo):
+        # One sub-step and whether the loop ends after it: (count, state, travel, ended).
+        def step(c):
+            k, s, travel, _ = c
+            new, du, newton, _, _, _ = _substep.substep(m, s, lo, jnp.array(False))
+            travel = travel + block_travel(m, du)
+            ended = ((k >= 4) | newton.converged | ~newton.finite
+                     | (jnp.max(travel) > m.max_displacement))
+            return k + 1, new, travel, ended
+
+        return step
+
+    def start(m, s):
+        return jnp.zeros((), jnp.int32), s, jnp.zeros(m.n_blocks, s.verts.dtype), jnp.array(False)
+
+    def exit_loop(m, s, lo):
+        return jax.lax.while_loop(lambda c: ~c[3], outcome_step(m, lo), start(m, s))[1]
+
+    def fixed_loop(m, s, lo):
+        step = outcome_step(m, lo)
+        body = lambda _, c: jax.lax.cond(c[3], lambda c: c, step, c)  # noqa: E731
+        return jax.lax.fori_loop(0, 50, body, start(m, s))[1]
+
     programs = {
         "detection": lambda m, s, lo: _substep.prepare_substep(m, s, lo),
         "sub-step": lambda m, s, lo: _substep.substep(m, s, lo, jnp.array(False)),
         "bare loop": bare_loop,
+        "exit loop": exit_loop,
+        "fixed loop": fixed_loop,
         "increment": lambda m, s, lo: increment(m, s, lo),
     }
     lowered, lower_s = {}, {}
@@ -119,15 +152,29 @@ def main() -> None:
                 low.compile(compiler_options=options)
                 times[name, level].append(time.perf_counter() - t)
 
+    runs, ends = {}, {}
+    for name in ("bare loop", "exit loop", "fixed loop"):
+        run = lowered[name].compile(compiler_options=options)
+        jax.block_until_ready(run(model, state, loads))
+        spent = []
+        for _ in range(3):
+            t = time.perf_counter()
+            ends[name] = jax.block_until_ready(run(model, state, loads))
+            spent.append(time.perf_counter() - t)
+        runs[name] = statistics.median(spent)
+    same = bool(jnp.all(ends["exit loop"].centroid == ends["fixed loop"].centroid))
+
     print(f"# {args.scene}: {model.n_blocks} blocks (size class), solver {model.linear_solver}; "
           f"{platform.machine()}, {cpu_model()}, {os.cpu_count()} cores, jax {jax.__version__}; "
           f"compile: medians of {args.repeats}, s")
     head = "".join(f" {'level ' + str(level):>9}" for level in args.levels)
-    print(f"{'program':>10} {'ops':>6} {'chars':>8} {'lower':>7}{head}")
+    print(f"{'program':>10} {'ops':>6} {'chars':>8} {'lower':>7}{head} {'run':>7}")
     for name, low in lowered.items():
         ops = sum(ops_by_module(low.as_text(debug_info=True)).values())
         cells = "".join(f" {statistics.median(times[name, level]):9.2f}" for level in args.levels)
-        print(f"{name:>10} {ops:6d} {len(low.as_text()):8d} {lower_s[name]:7.2f}{cells}")
+        run = f" {runs[name]:7.3f}" if name in runs else f" {'-':>7}"
+        print(f"{name:>10} {ops:6d} {len(low.as_text()):8d} {lower_s[name]:7.2f}{cells}{run}")
+    print(f"# the exit loop and the fixed loop end with the same centroids, bit for bit: {same}")
     print("# the increment's operations by the module that made them")
     for module, n in ops_by_module(lowered["increment"].as_text(debug_info=True)).most_common():
         print(f"{module:>24} {n:6d}")
