@@ -3,7 +3,8 @@
 One increment applies the loads of one load step (block forces, water table,
 installed bolts) and looks for static equilibrium with large displacements:
 
-  repeat (geometry sub-steps, ``lax.while_loop``):
+  repeat (geometry sub-steps: a ``lax.fori_loop`` to ``max_substeps`` whose body is
+  skipped once the increment has ended, a ``lax.while_loop`` in a batch):
     detect contacts at the current geometry, carry each slot's history;
     Newton iteration on the increment du of the free blocks
     (``lax.while_loop``): trial spring forces from the gaps and the
