@@ -102,9 +102,8 @@ def main() -> None:
         lambda m, sb, s, c, du: _substep.corner_bound(m, sb, s.centroid, c, du,
                                                       packed.geo.a.shape[0]),
         mdl2, sub, state, found.corners, newton.du)))
-    rows.append(("Newton and commit", timed(
-        lambda m, s, sb, st, p, f: _substep.newton_and_commit(m, s, sb, st, p, f),
-        mdl2, state, sub, st0, pairs, found)))
+    rows.append(("Newton and commit", timed(_substep.newton_and_commit, mdl2, state, sub, st0,
+                                            pairs, found)))
     # The evaluation laid out over every slot, as the commit gets it (none to lay out
     # where every slot has a place: pack_slots gives no indices).
     laid = ev if sid is None else jax.jit(_substep._unpacked)(mdl2, sub, ev, sid)
