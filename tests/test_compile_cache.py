@@ -205,3 +205,40 @@ def test_a_prefetched_program_counts_in_the_bound_of_kept_programs(monkeypatch, 
         assert compile_cache.prefetch(f, x) == 0.0  # there already
     finally:
         compile_cache._ON_DISK.pop(f, None)
+
+
+def _outer_loop(fn, *args):
+    """The first ``while`` of ``fn``'s jaxpr: the increment's loop of sub-steps."""
+    jaxpr = jax.make_jaxpr(fn)(*args).jaxpr
+    return next(e for e in jaxpr.eqns if e.primitive.name == "while")
+
+
+def test_a_single_solve_skips_its_sub_steps_and_a_batch_ends_its_loop():
+    """The loop of sub-steps: in a single solve a loop to ``max_substeps`` whose body is a
+    cond that skips the sub-step once the increment has ended (XLA compiles it a third
+    faster than a loop that ends on the outcome: BENCHMARKS.md, "Twenty-fourth session");
+    in a batch (``model.lanes``, under vmap) a loop that ends when every member has ended
+    (its predicate one flag per member, the loop going on while any is true): a cond on a
+    member's status would become a select there, and every member would run all
+    ``max_substeps`` sub-steps."""
+    import dataclasses
+
+    from jaxdem.core.increment import substeps_to_equilibrium
+
+    scene = parse_scene(block_on_incline(30.0, 35.0))
+    model, state, layout = model_mod.build(scene)
+    data = solver.scene_data(scene, layout)
+    loads, _ = solver._Driver(model, state, layout, data, None).loads(data.weight + data.traction)
+
+    # The model an argument, as in the solver's programs (closed over, its max_substeps
+    # would be a constant, and the loop a scan).
+    single = _outer_loop(substeps_to_equilibrium, model, state, loads)
+    body = [e.primitive.name for e in single.params["body_jaxpr"].jaxpr.eqns]
+    assert "cond" in body
+    assert single.params["cond_jaxpr"].out_avals[0].shape == ()  # a count of sub-steps
+
+    lanes = dataclasses.replace(model, lanes="lanes")
+    stack = lambda t: jax.tree.map(lambda x: x[None], t)  # noqa: E731
+    batched = _outer_loop(jax.vmap(substeps_to_equilibrium, in_axes=(None, 0, 0),
+                                   axis_name="lanes"), lanes, stack(state), stack(loads))
+    assert batched.params["cond_jaxpr"].out_avals[0].shape == (1,)  # each member's status
