@@ -6,6 +6,7 @@ collects it instead of compiling it again. ``while_compiling`` runs host work
 (the command line's matplotlib warm-up) while a program compiles.
 """
 
+import dataclasses
 import threading
 
 import jax
@@ -19,7 +20,7 @@ from jaxdem import solver
 from jaxdem.core import _substep as substep
 from jaxdem.core import compile_cache
 from jaxdem.core import model as model_mod
-from jaxdem.core.increment import increment
+from jaxdem.core.increment import increment, substeps_to_equilibrium
 from jaxdem.scene import parse_scene
 
 
@@ -126,12 +127,18 @@ def _calls_in_trace(monkeypatch, name):
 
     monkeypatch.setattr(substep, name, counted)
     jax.clear_caches()
+    increment.lower(*_incline_increment())
+    return len(calls)
+
+
+def _incline_increment():
+    """(model, state, loads) of the block on an incline's first increment, as the solver
+    makes them."""
     scene = parse_scene(block_on_incline(30.0, 35.0))
     model, state, layout = model_mod.build(scene)
     data = solver.scene_data(scene, layout)
     loads, _ = solver._Driver(model, state, layout, data, None).loads(data.weight + data.traction)
-    increment.lower(model, state, loads)
-    return len(calls)
+    return model, state, loads
 
 
 def test_the_increment_traces_its_sub_step_once(monkeypatch):
@@ -221,15 +228,7 @@ def test_a_single_solve_skips_its_sub_steps_and_a_batch_ends_its_loop():
     (its predicate one flag per member, the loop going on while any is true): a cond on a
     member's status would become a select there, and every member would run all
     ``max_substeps`` sub-steps."""
-    import dataclasses
-
-    from jaxdem.core.increment import substeps_to_equilibrium
-
-    scene = parse_scene(block_on_incline(30.0, 35.0))
-    model, state, layout = model_mod.build(scene)
-    data = solver.scene_data(scene, layout)
-    loads, _ = solver._Driver(model, state, layout, data, None).loads(data.weight + data.traction)
-
+    model, state, loads = _incline_increment()
     # The model an argument, as in the solver's programs (closed over, its max_substeps
     # would be a constant, and the loop a scan).
     single = _outer_loop(substeps_to_equilibrium, model, state, loads)
