@@ -173,14 +173,17 @@ def main() -> None:
           f"compile: medians of {args.repeats}, s")
     head = "".join(f" {'level ' + str(level):>9}" for level in args.levels)
     print(f"{'program':>10} {'ops':>6} {'chars':>8} {'lower':>7}{head} {'run':>7}")
+    # The operations of each program by module (its text with locations, printed once).
+    by_module = {name: ops_by_module(low.as_text(debug_info=True))
+                 for name, low in lowered.items()}
     for name, low in lowered.items():
-        ops = sum(ops_by_module(low.as_text(debug_info=True)).values())
+        ops = sum(by_module[name].values())
         cells = "".join(f" {statistics.median(times[name, level]):9.2f}" for level in args.levels)
         run = f" {runs[name]:7.3f}" if name in runs else f" {'-':>7}"
         print(f"{name:>10} {ops:6d} {len(low.as_text()):8d} {lower_s[name]:7.2f}{cells}{run}")
     print(f"# the exit loop and the fixed loop end with the same centroids, bit for bit: {same}")
     print("# the increment's operations by the module that made them")
-    for module, n in ops_by_module(lowered["increment"].as_text(debug_info=True)).most_common():
+    for module, n in by_module["increment"].most_common():
         print(f"{module:>24} {n:6d}")
 
 
