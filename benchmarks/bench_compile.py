@@ -87,15 +87,12 @@ def main() -> None:
     import jaxdem
     from jaxdem import solver
     from jaxdem.core import _substep, compile_cache
-    from jaxdem.core import model as model_mod
     from jaxdem.core.increment import increment
     from jaxdem.core.kinematics import block_travel
 
     jaxdem.config.configure()
     scene = jaxdem.load_scene(args.scene)
-    model, state, layout = model_mod.build(scene)
-    data = solver.scene_data(scene, layout)
-    loads, _ = solver._Driver(model, state, layout, data, None).loads(data.weight + data.traction)
+    model, state, loads = solver.increment_arguments(scene)
 
     def bare_loop(m, s, lo):
         def body(c):

@@ -36,8 +36,8 @@ from jaxdem.core.status import Status, global_imbalance
 from jaxdem.results import build_result, monitor_values, stage_frame
 from jaxdem.rockmass import small_block_area
 
-__all__ = ["COMPILE_TIMES", "Data", "Status", "gravity_material", "increment_count",
-           "loose_limit", "run", "run_increment", "scene_data", "solve"]
+__all__ = ["COMPILE_TIMES", "Data", "Status", "gravity_material", "increment_arguments",
+           "increment_count", "loose_limit", "run", "run_increment", "scene_data", "solve"]
 
 
 @float64
@@ -93,6 +93,25 @@ def solve(scene, set: dict | None = None, progress=None):
                           timing, bolt_active=d.bolt_active, loose=d.loose, cuts=d.cuts)
     result.geometry["stages"] = frames
     return result
+
+
+@float64
+def increment_arguments(scene):
+    """(model, state, loads): the arguments of a scene's increment program
+    (:func:`jaxdem.core.increment.increment`) as :func:`solve` makes them for a load step of
+    self-weight and tractions from the unloaded start, to compile, time or profile that
+    program alone (``benchmarks/bench_compile.py``). Every increment of the scene (in-situ,
+    stages) has the same shapes, and so the same program, until a capacity grows.
+
+    Example::
+
+        model, state, loads = jaxdem.solver.increment_arguments(scene)
+        lowered = jax.jit(jaxdem.core.increment.increment).lower(model, state, loads)
+    """
+    model, state, layout = model_mod.build(scene)
+    data = scene_data(scene, layout)
+    loads, _ = _Driver(model, state, layout, data, None).loads(data.weight + data.traction)
+    return model, state, loads
 
 
 def run(scene, model: Model, state: State, layout, data: Data, progress=None,

@@ -19,7 +19,6 @@ import jaxdem
 from jaxdem import solver
 from jaxdem.core import _substep as substep
 from jaxdem.core import compile_cache
-from jaxdem.core import model as model_mod
 from jaxdem.core.increment import increment, substeps_to_equilibrium
 from jaxdem.scene import parse_scene
 
@@ -134,11 +133,22 @@ def _calls_in_trace(monkeypatch, name):
 def _incline_increment():
     """(model, state, loads) of the block on an incline's first increment, as the solver
     makes them."""
+    return solver.increment_arguments(parse_scene(block_on_incline(30.0, 35.0)))
+
+
+def test_increment_arguments_are_those_of_the_solvers_increment():
+    """``solver.increment_arguments`` gives the program the arguments ``solve`` gives it: with
+    one load step that increment is the whole solve, and run on them it moves the block on
+    the incline as ``solve`` does (to round-off: the solver compiles the program with its own
+    XLA options, this test with JAX's defaults)."""
     scene = parse_scene(block_on_incline(30.0, 35.0))
-    model, state, layout = model_mod.build(scene)
-    data = solver.scene_data(scene, layout)
-    loads, _ = solver._Driver(model, state, layout, data, None).loads(data.weight + data.traction)
-    return model, state, loads
+    model, state, loads = solver.increment_arguments(scene)
+    new, info = increment(model, state, loads)
+    assert solver.Status.of(info.status) == solver.Status.CONVERGED
+    result = jaxdem.solve(scene)
+    moved = np.asarray(new.centroid - state.centroid)
+    for i, block in enumerate(result.blocks):
+        np.testing.assert_allclose(moved[i], block["u"][:2], rtol=1e-9, atol=0.0)
 
 
 def test_the_increment_traces_its_sub_step_once(monkeypatch):
