@@ -64,7 +64,7 @@ def run(name: str, overrides: dict | None = None, tag: str | None = None) -> dic
                stable=result.stable, message=result.message, wall_s=wall,
                n_blocks=len(result.blocks), timing=d["timing"], contacts=d["contacts"],
                monitors={k: _scalar(v) for k, v in result.monitors.items()},
-               blocks=d["blocks"])
+               blocks=d["blocks"], excavated=any(b.get("excavated") for b in d["blocks"]))
     print(f"  {row['name']}: {result.status}, stable={result.stable}, {len(result.blocks)} blocks, "
           f"{wall:.1f} s", flush=True)
     return row
@@ -135,6 +135,9 @@ def main(argv=None) -> int:
         print(f"  without D: max {wo['max']:9.1f}  mean {wo['mean']:8.1f}  ({wo['n']} blocks)")
         holds = w["max"] > wo["max"] and w["mean"] > wo["mean"]
         verdict = "holds" if holds else "does NOT hold"
+        if not all(rows[k].get("excavated") for k in pair):
+            verdict = ("not comparable: a case stopped before its tunnels were excavated "
+                       "(its initial state)")
         print(f"  'with D the stresses concentrate around tunnel a': {verdict}")
     if {"seed_example4_slope_dry", "seed_example4_slope_wet"} <= rows.keys():
         dry, wet = rows["seed_example4_slope_dry"], rows["seed_example4_slope_wet"]
