@@ -103,10 +103,14 @@ def increment_arguments(scene):
     program alone (``benchmarks/bench_compile.py``). Every increment of the scene (in-situ,
     stages) has the same shapes, and so the same program, until a capacity grows.
 
-    Example::
+    Example (float64 for the whole process first, as the command line has it)::
 
+        from jaxdem.core.increment import increment
+
+        jaxdem.config.configure()
         model, state, loads = jaxdem.solver.increment_arguments(scene)
-        lowered = jax.jit(jaxdem.core.increment.increment).lower(model, state, loads)
+        compiled = increment.lower(model, state, loads).compile()
+        new_state, report = compiled(model, state, loads)
     """
     model, state, layout = model_mod.build(scene)
     data = scene_data(scene, layout)
