@@ -65,7 +65,10 @@ def run(name: str, overrides: dict | None = None, tag: str | None = None) -> dic
                n_blocks=len(result.blocks), timing=d["timing"], contacts=d["contacts"],
                monitors={k: _scalar(v) for k, v in result.monitors.items()},
                blocks=d["blocks"], excavated=any(b.get("excavated") for b in d["blocks"]))
-    print(f"  {row['name']}: {result.status}, stable={result.stable}, {len(result.blocks)} blocks, "
+    # As the command line says it: without an admissible equilibrium, and no mechanism
+    # found either, whether the rock stands is not known.
+    stable = ("yes" if result.converged else "not known") if result.stable else "NO"
+    print(f"  {row['name']}: {result.status}, stable: {stable}, {len(result.blocks)} blocks, "
           f"{wall:.1f} s", flush=True)
     return row
 
