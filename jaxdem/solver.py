@@ -101,7 +101,9 @@ def increment_arguments(scene):
     (:func:`jaxdem.core.increment.increment`) as :func:`solve` makes them for a load step of
     self-weight and tractions from the unloaded start, to compile, time or profile that
     program alone (``benchmarks/bench_compile.py``). Every increment of the scene (in-situ,
-    stages) has the same shapes, and so the same program, until a capacity grows.
+    stages) has these shapes until a contact capacity grows, so this is the program they
+    all run (the solver compiles it with its own XLA options:
+    :func:`jaxdem.core.compile_cache.compiled_program`).
 
     Example (float64 for the whole process first, as the command line has it)::
 
