@@ -472,6 +472,30 @@ def test_set_is_shown_with_the_scene_name(fake_solver, scene_file, tmp_path, cap
     assert data["overrides"] == {"joints.j.kn": 2e7}
 
 
+def test_set_takes_a_word_for_a_solver_choice(fake_solver, scene_file, tmp_path, capsys,
+                                              monkeypatch):
+    """``--set solver.linear_solver=sparse`` reaches the scene the solver gets, and the
+    name and result.json say so as for a number."""
+    from jaxdem import solver
+
+    seen = []
+    answer = solver.solve
+    monkeypatch.setattr(solver, "solve",
+                        lambda scene, **kw: seen.append(scene) or answer(scene, **kw))
+    out = tmp_path / "o"
+    assert main(["run", str(scene_file), "--out", str(out), "--set", "joints.j.kn=2e7",
+                 "solver.linear_solver=sparse"]) == 0
+    first = capsys.readouterr().out.splitlines()[0]
+    assert first.startswith("block on base (--set joints.j.kn=2e+07 solver.linear_solver=sparse)")
+    assert seen[-1].solver.linear_solver == "sparse"
+    data = json.loads((out / "result.json").read_text())
+    assert data["overrides"] == {"joints.j.kn": 2e7, "solver.linear_solver": "sparse"}
+    # A word that is none of the choice's values: refused before any computation.
+    assert main(["run", str(scene_file), "--out", str(out), "--set",
+                 "solver.linear_solver=lu"]) == 2
+    assert "solver.linear_solver: must be one of auto, dense, sparse, cg" in capsys.readouterr().err
+
+
 def test_sweep_says_what_it_will_solve_before_starting(scene_file, tmp_path, capsys,
                                                        monkeypatch):
     import importlib

@@ -590,6 +590,32 @@ def test_parse_set_arguments():
     assert parse_set_arguments([]) == {}
 
 
+def test_the_solver_choices_take_a_word():
+    """``--set solver.linear_solver=cg`` (and dtype, loose_blocks, bond_failure) sets the
+    word, whether or not the file gives the field; the scene's own check refuses a word
+    that is not one of the choice's values, and a number is refused for a choice as a
+    word is for a number."""
+    assert parse_set_arguments(["solver.linear_solver=cg", "joints.j.kn=2e6"]) == {
+        "solver.linear_solver": "cg", "joints.j.kn": 2e6}
+    scene = load_scene(valid_scene_dict())
+    new = scene.with_overrides(parse_set_arguments(
+        ["solver.linear_solver=sparse", "solver.dtype=float32", "solver.bond_failure=substep",
+         "solver.loose_blocks=stop"]))
+    assert (new.solver.linear_solver, new.solver.dtype, new.solver.bond_failure,
+            new.solver.loose_blocks) == ("sparse", "float32", "substep", "stop")
+    assert scene.solver.linear_solver == "auto"
+    with pytest.raises(SceneError, match=r"^solver\.linear_solver: must be one of auto, dense, "
+                                         r"sparse, cg \(got 'lu'\)"):
+        scene.with_overrides({"solver.linear_solver": "lu"})
+    with pytest.raises(SceneError, match=r"^--set solver\.dtype: a choice"):
+        scene.with_overrides({"solver.dtype": 32.0})
+    # A word is still refused for every other entry, on the command line and in Python.
+    with pytest.raises(SceneError, match=r"^--set: value of solver\.tolerance must be a number"):
+        parse_set_arguments(["solver.tolerance=small"])
+    with pytest.raises(SceneError, match="number"):
+        scene.with_overrides({"scene.name": "other"})
+
+
 @pytest.mark.parametrize("item", ["joints.j.kn", "=3", "joints..kn=3", "joints.j.kn=abc", "x=nan"])
 def test_parse_set_arguments_refused(item):
     with pytest.raises(SceneError) as info:

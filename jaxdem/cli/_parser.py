@@ -105,7 +105,8 @@ def make_parser() -> argparse.ArgumentParser:
     run.add_argument("--out", metavar="DIR",
                      help="output folder (default out/<file name without .toml>)")
     _add_set_option(run, "override scene parameters, e.g. --set joints.set1.kn=2e6 "
-                    "in_situ.k0=1.5 (repeatable)")
+                    "in_situ.k0=1.5, or the solver's choices by a word, e.g. "
+                    "solver.linear_solver=cg (repeatable)")
     _add_vtk_option(run)
     _add_figures_option(run)
     _add_view_option(run)

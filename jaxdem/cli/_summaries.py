@@ -26,7 +26,8 @@ def scene_name(scene: Any, path: Path, overrides: dict[str, Any] | None = None) 
     """The scene's name, with the ``--set`` overrides it was solved with."""
     name = str(getattr(scene, "name", None) or path.stem)
     if overrides:
-        name += " (--set " + " ".join(f"{k}={v:g}" for k, v in overrides.items()) + ")"
+        name += " (--set " + " ".join(f"{k}={v}" if isinstance(v, str) else f"{k}={v:g}"
+                                      for k, v in overrides.items()) + ")"
     return name
 
 

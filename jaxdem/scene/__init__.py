@@ -10,7 +10,8 @@ message starts with the field's dotted path, for example::
 Units as in the files (SPEC section 1): m, kN, kPa, kN/m3, angles in degrees (the
 solver converts to radians). Every numeric entry is a parameter addressable by its
 dotted path (``joints.set1.kn``, ``boundaries.1.traction.0``), which is what
-``--set PATH=VALUE`` and ``Scene.with_overrides`` change.
+``--set PATH=VALUE`` and ``Scene.with_overrides`` change (and the solver's choices,
+``solver.linear_solver=cg``, by a word: :data:`jaxdem.scene._overrides.SOLVER_CHOICES`).
 
 Example::
 

@@ -5,9 +5,11 @@ solves.
 Works on the raw scene dict before validation: :func:`parse_set_arguments` turns the
 command-line strings into ``{path: value}``, :func:`apply_overrides` returns a deep copy
 of the dict with those numeric entries set (list items by index, ``boundaries.1.traction.0``;
-an optional numeric field the file leaves out may be added where its table exists). The
-result is validated again by :func:`jaxdem.scene.parse_scene`; a path that does not exist
-or names no number raises ``SceneError`` ("--set PATH: ...").
+an optional numeric field the file leaves out may be added where its table exists), and
+the solver's choices (:data:`SOLVER_CHOICES`, ``solver.linear_solver=cg``) set to a word.
+The result is validated again by :func:`jaxdem.scene.parse_scene` (a word that is not one
+of a choice's values is refused there); a path that does not exist or names no number
+raises ``SceneError`` ("--set PATH: ...").
 """
 
 from __future__ import annotations
@@ -39,19 +41,30 @@ _OPTIONAL_NUMERIC = {
 _DEPTH2 = ("solver", "domain", "in_situ", "water")
 _DEPTH3 = ("materials", "joints", "bolts", "stages")
 _INT_FIELDS = ("load_steps", "max_iterations")
+#: The solver's settings that take a word (``--set solver.linear_solver=cg``): the only
+#: entries an override sets to a string. They are settings, not parameters: ``--vary``,
+#: sweeps and gradients take numbers alone.
+SOLVER_CHOICES = ("dtype", "linear_solver", "loose_blocks", "bond_failure")
+
+
+def _is_choice(dotted: str) -> bool:
+    keys = dotted.split(".")
+    return len(keys) == 2 and keys[0] == "solver" and keys[1] in SOLVER_CHOICES
 
 
 def _walk_error(path: str, problem: str) -> SceneError:
     return SceneError(path, problem, prefix="--set ")
 
 
-def apply_overrides(data: dict, overrides: Mapping[str, float]) -> dict:
+def apply_overrides(data: dict, overrides: Mapping[str, float | str]) -> dict:
     """A deep copy of ``data`` with numeric entries set by dotted path (``joints.j.kn``).
 
     List items are addressed by index (``boundaries.1.traction.0``). A path that does not
     exist, or that names a non-numeric entry, raises ``SceneError`` ("--set PATH: ...").
     An optional scalar field left out of the file (``joints.j.cohesion``) may be set when
-    its table exists. Integer entries stay integers when the new value is integral.
+    its table exists. Integer entries stay integers when the new value is integral. The
+    solver's choices (:data:`SOLVER_CHOICES`) take a word, whether or not the file gives
+    them (``{"solver.linear_solver": "cg"}``).
     """
     try:
         out = copy.deepcopy(data)
@@ -64,6 +77,15 @@ def apply_overrides(data: dict, overrides: Mapping[str, float]) -> dict:
     for dotted, value in overrides.items():
         if not isinstance(dotted, str) or not dotted:
             raise SceneError("--set", f"parameter path must be a non-empty string (got {dotted!r})")
+        if _is_choice(dotted):
+            if not isinstance(value, str):
+                raise _walk_error(dotted, f"a choice: its value is a word, one of those in "
+                                          f"docs/scene-format.md (got {fmt(value)})")
+            out.setdefault("solver", {})
+            if not isinstance(out["solver"], dict):
+                raise _walk_error(dotted, "no such parameter ([solver] is not a table)")
+            out["solver"][dotted.split(".")[1]] = value
+            continue
         if not is_number(value) or not math.isfinite(float(value)):
             raise _walk_error(dotted, f"value must be a finite number (got {fmt(value)})")
         keys = dotted.split(".")
@@ -131,17 +153,18 @@ def _convert(value: Any, as_int: bool) -> int | float:
     return int(value) if isinstance(value, (int, np.integer)) else x
 
 
-def parse_set_arguments(items: list[str]) -> dict[str, float]:
-    """Command-line ``--set PATH=VALUE`` strings -> ``{PATH: float(VALUE)}``.
+def parse_set_arguments(items: list[str]) -> dict[str, float | str]:
+    """Command-line ``--set PATH=VALUE`` strings -> ``{PATH: float(VALUE)}``, or the word
+    itself for the solver's choices (:data:`SOLVER_CHOICES`).
 
     Malformed items raise ``SceneError`` with path ``"--set"``.
 
     Example::
 
-        >>> parse_set_arguments(["joints.j.kn=2e6"])
-        {'joints.j.kn': 2000000.0}
+        >>> parse_set_arguments(["joints.j.kn=2e6", "solver.linear_solver=cg"])
+        {'joints.j.kn': 2000000.0, 'solver.linear_solver': 'cg'}
     """
-    out: dict[str, float] = {}
+    out: dict[str, float | str] = {}
     for item in items:
         if not isinstance(item, str) or "=" not in item:
             raise SceneError("--set", f"expected PATH=VALUE, e.g. joints.j.kn=2e6 (got {item!r})")
@@ -150,13 +173,16 @@ def parse_set_arguments(items: list[str]) -> dict[str, float]:
         parts = path.split(".")
         if not path or any(not p for p in parts) or any(c.isspace() for c in path):
             raise SceneError("--set", f"bad parameter path {path!r} in {item!r}")
+        if path in out:
+            raise SceneError("--set", f"{path} is given twice")
+        if _is_choice(path):
+            out[path] = text
+            continue
         try:
             value = float(text)
         except ValueError:
             raise SceneError("--set", f"value of {path} must be a number (got {text!r})") from None
         if not math.isfinite(value):
             raise SceneError("--set", f"value of {path} must be finite (got {text!r})")
-        if path in out:
-            raise SceneError("--set", f"{path} is given twice")
         out[path] = value
     return out

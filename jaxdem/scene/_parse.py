@@ -148,8 +148,9 @@ class Scene:
     gravity in-situ state the intact rock cannot carry
     (:func:`jaxdem.scene._checks.in_situ_strength_warnings`)."""
 
-    def with_overrides(self, overrides: Mapping[str, float]) -> Scene:
-        """A new Scene re-validated from ``data`` with numeric entries set by dotted path."""
+    def with_overrides(self, overrides: Mapping[str, float | str]) -> Scene:
+        """A new Scene re-validated from ``data`` with numeric entries (and the solver's
+        choices, :func:`jaxdem.scene.apply_overrides`) set by dotted path."""
         return parse_scene(apply_overrides(self.data, overrides), source=self.source)
 
 
