@@ -81,12 +81,7 @@ def apply_overrides(data: dict, overrides: Mapping[str, float | str]) -> dict:
             if not isinstance(value, str):
                 raise _walk_error(dotted, f"a choice: its value is a word, one of those in "
                                           f"docs/scene-format.md (got {fmt(value)})")
-            out.setdefault("solver", {})
-            if not isinstance(out["solver"], dict):
-                raise _walk_error(dotted, "no such parameter ([solver] is not a table)")
-            out["solver"][dotted.split(".")[1]] = value
-            continue
-        if not is_number(value) or not math.isfinite(float(value)):
+        elif not is_number(value) or not math.isfinite(float(value)):
             raise _walk_error(dotted, f"value must be a finite number (got {fmt(value)})")
         keys = dotted.split(".")
         node: Any = out
@@ -128,6 +123,10 @@ def _set_leaf(node: Any, last: str, value: Any, dotted: str, keys: list[str]) ->
         idx: Any = int(last)
         old = node[idx]
     elif isinstance(node, dict):
+        if _is_choice(dotted):
+            # A word, set whether or not the file gives it; parse_scene checks it.
+            node[last] = value
+            return
         if last not in node:
             section = keys[0]
             depth_ok = (section in _DEPTH2 and len(keys) == 2) or (
