@@ -11,7 +11,8 @@
 #   - seed example 2 (1,193 blocks, deformable cells);
 #   - the 100 x 100 grid of 1 m blocks on a base (10,001 blocks; benchmarks/bench_time_to_answer.py);
 #   - a 1,024-sample batch of the 52-block benchmark tunnel (benchmarks/bench_throughput.py).
-# On a GPU "auto" takes the dense LU up to 32,000 unknowns (jaxdem.core.model): these are
+# On a GPU "auto" takes the dense path up to 32,000 unknowns (jaxdem.core.model; LU, and
+# Cholesky where the matrix is symmetric, since the twenty-eighth session): these are
 # timings of that choice on a GPU (the first, 2026-11-27, an H100: BENCHMARKS.md "GPU").
 # Put the table it prints in BENCHMARKS.md, "GPU".
 set -u

@@ -98,13 +98,53 @@ def test_sparse_solve_of_one_iteration_matches_dense_lu(path, monkeypatch):
         sparsax = _linsolve._sparsax()
         monkeypatch.setattr(sparsax, "lu_solve", lambda Ai, Aj, Ax, b: b * jnp.nan)
     R = jnp.where(sub.free[:, None], 1.0, 0.0) * jnp.ones((mdl.n_blocks, mdl.ndof))
-    x_dense = solve_dense(mdl, sub, _linsolve._unsymmetric(sub, terms, coupling), R)
+    x_dense = solve_dense(mdl, sub, terms, R, symmetric=coupling is None, coupling=coupling)
     x_sparse = jax.jit(lambda r: _solve_sparse(
         mdl, sub, terms, r, symmetric=jnp.asarray(coupling is None), coupling=coupling))(R)
     scale = np.abs(np.asarray(x_dense)).max()
     assert scale > 0
     np.testing.assert_allclose(np.asarray(x_sparse), np.asarray(x_dense), rtol=0,
                                atol=1e-10 * scale)
+
+
+@pytest.mark.parametrize("case", ["symmetric", "slip coupling", "not positive definite"])
+def test_dense_cholesky_of_one_iteration_matches_lu(case, monkeypatch):
+    """Above DENSE_CHOLESKY_ABOVE unknowns (a GPU's dense path; lowered here to 0) the
+    dense path factorises a symmetric Newton matrix by Cholesky: LU's answer to 1e-10 on
+    the tunnel's first sub-step, without an LU (one that gave NaN here would show). The
+    slip tangent (unsymmetric) and a symmetric matrix that is not positive definite
+    (Cholesky's factor is then NaN) are LU's: its answer to round-off."""
+    from jaxdem.core import _linsolve
+
+    monkeypatch.setattr(_linsolve, "DENSE_CHOLESKY_ABOVE", 0)
+    model, state, _ = model_mod.build(parse_scene(jointed_tunnel(water=False, bolts=False)))
+    loads = make_loads(model, model.f_ext)
+    mdl, sub, st0, _, _ = prepare_substep(model, state, loads)
+    assert mdl.lanes is None and not mdl.n_bolts and sub.load.dtype == jnp.float64
+    ev = evaluate(mdl, sub, jnp.zeros_like(loads.force), jnp.zeros_like(st0, bool), st0,
+                  st0, 0.0)
+    terms = stiffness_terms(mdl, sub, ev, False)
+    coupling = None
+    if case == "slip coupling":  # -tan(phi) kn Bs Bn^T on a third of the touching slots
+        third = sub.geo.active & (jnp.arange(st0.shape[0]) % 3 == 0)
+        coupling = (sub.geo.a, sub.geo.b, sub.Bs, sub.Bn,
+                    jnp.where(third, -0.6 * sub.prop.kn, 0.0))
+    if case == "not positive definite":  # one free block's pseudo-mass far below zero
+        free = int(np.nonzero(np.asarray(sub.free))[0][0])
+        mdl = dataclasses.replace(mdl, pseudo_mass=mdl.pseudo_mass.at[free].set(
+            -1e3 * float(jnp.max(sub.prop.kn))))
+    diag = jnp.where(jnp.repeat(sub.free, mdl.ndof), mdl.pseudo_mass.reshape(-1), 1.0)
+    K = _linsolve.assemble_dense(mdl, sub, *_linsolve._unsymmetric(sub, terms, coupling), diag)
+    R = jnp.where(sub.free[:, None], 1.0, 0.0) * jnp.ones((mdl.n_blocks, mdl.ndof))
+    x_lu = np.asarray(jnp.linalg.solve(K, R.reshape(-1))).reshape(R.shape)
+    if case == "symmetric":
+        monkeypatch.setattr(jnp.linalg, "solve", lambda A, b: b * jnp.nan)
+    x = np.asarray(jax.jit(lambda r: solve_dense(mdl, sub, terms, r, symmetric=coupling is None,
+                                                 coupling=coupling))(R))
+    scale = np.abs(x_lu).max()
+    assert scale > 0 and np.all(np.isfinite(x))
+    np.testing.assert_allclose(x, x_lu, rtol=0, atol=(1e-10 if case == "symmetric" else 1e-13)
+                               * scale)
 
 
 def test_float32_sparse_solve_matches_float64():

@@ -1,9 +1,9 @@
 """Linear solves of the Newton iteration: (K_t + eps M) ddu = R.
 
 Owns the three paths behind :func:`linear_solve`, chosen by
-``model.linear_solver`` (static): "dense" (LU of the assembled matrix,
-:func:`solve_dense`), "sparse" (SuiteSparse's CHOLMOD or KLU inside the program,
-:func:`_solve_sparse`) and "cg" (matrix-free preconditioned
+``model.linear_solver`` (static): "dense" (LU of the assembled matrix, Cholesky where
+it is symmetric and large: :func:`solve_dense`), "sparse" (SuiteSparse's CHOLMOD or KLU
+inside the program, :func:`_solve_sparse`) and "cg" (matrix-free preconditioned
 conjugate gradients, :func:`solve_cg`); and the assembly they share
 (:func:`stiffness_blocks`, :func:`assemble_dense`, :func:`host_matrix`).
 
@@ -32,16 +32,16 @@ def linear_solve(model: Model, sub: Sub, terms, R, rtol=None, active=True, symme
     (:func:`jaxdem.core._springs.stiffness_terms`); ``coupling`` (a, b, L, Rt, k),
     the slip coupling (:func:`jaxdem.core._springs.slip_coupling`), makes it
     unsymmetric on the direct paths ("cg" takes the symmetric part alone). ``rtol``
-    is the relative residual at which CG stops (:func:`solve_cg`); ``active`` and
-    ``symmetric`` (traced bools: False where the coupling is on) are for the sparse
-    path (:func:`_solve_sparse`). The choice is static: only the chosen path is
-    traced.
+    is the relative residual at which CG stops (:func:`solve_cg`); ``symmetric`` (a
+    traced bool: False where the coupling is on) is for the direct paths
+    (:func:`_solve_sparse`, :func:`solve_dense`), ``active`` for the sparse one. The
+    choice is static: only the chosen path is traced.
     """
     if model.linear_solver == "cg":
         return solve_cg(model, sub, terms, R, rtol)
     if model.linear_solver == "sparse":
         return _solve_sparse(model, sub, terms, R, active, symmetric, coupling)
-    return solve_dense(model, sub, _unsymmetric(sub, terms, coupling), R)
+    return solve_dense(model, sub, terms, R, symmetric, coupling)
 
 
 def _unsymmetric(sub: Sub, terms, coupling):
@@ -151,21 +151,50 @@ def assemble_dense(model: Model, sub: Sub, a, b, L, Rt, k, diag):
     return K4.reshape(N * D, N * D)
 
 
-def solve_dense(model: Model, sub: Sub, terms, R):
-    """(K_t + eps M)^-1 R by LU on the assembled (D N, D N) matrix.
+def solve_dense(model: Model, sub: Sub, terms, R, symmetric=True, coupling=None):
+    """(K_t + eps M)^-1 R on the assembled (D N, D N) matrix.
 
-    ``terms`` is (a, b, L, Rt, k) (:func:`jaxdem.core._springs.with_slip_coupling`): K is
-    unsymmetric where the slip coupling is on. LU every iteration, not
-    Cholesky where K is symmetric: under vmap a choice between the two would
-    run both, and two batched LAPACK calls that may run at once can deadlock
-    XLA's CPU thread pool (see :func:`jaxdem.batch._one_per_device`). LU
-    costs about 7% of a batched sweep's time (measured on the 52-block
-    benchmark tunnel).
+    ``terms`` (a, b, B, k), ``symmetric`` and ``coupling`` as :func:`linear_solve` takes
+    them: K is unsymmetric where the slip coupling is on, and then factorised by LU.
+    Where it is symmetric and has more than :data:`DENSE_CHOLESKY_ABOVE` unknowns (the
+    dense path of a GPU, which "auto" takes up to 32,000 unknowns), by Cholesky: n^3 / 3
+    operations against LU's 2 n^3 / 3 (seed example 2's 7,680 unknowns on the 2-core
+    CPU: 2.4 s against 3.4), LU where its answer is not finite (a matrix not positive
+    definite). LU alone in a batch (``model.lanes``: under vmap a choice between the two
+    would run both, and two batched LAPACK calls that may run at once can deadlock XLA's
+    CPU thread pool, see :func:`jaxdem.batch._one_per_device`; LU costs about 7% of a
+    batched sweep's time, measured on the 52-block benchmark tunnel), in float32 (its
+    rounding of eps M, a millionth of the stiffness, can leave the matrix indefinite, as
+    it did seed example 2's for CHOLMOD) and with bolts (a bolt's geometric stiffness can
+    be indefinite in rotation), as on the sparse path.
     """
-    a, b, L, Rt, k = terms
     diag = jnp.where(jnp.repeat(sub.free, model.ndof), model.pseudo_mass.reshape(-1), 1.0)
-    K = assemble_dense(model, sub, a, b, L, Rt, k, diag)
-    return jnp.linalg.solve(K, R.reshape(-1)).reshape(R.shape)
+    rhs = R.reshape(-1)
+
+    def by_lu():
+        K = assemble_dense(model, sub, *_unsymmetric(sub, terms, coupling), diag)
+        return jnp.linalg.solve(K, rhs)
+
+    if (model.n_blocks * model.ndof <= DENSE_CHOLESKY_ABOVE or model.lanes is not None
+            or model.n_bolts or R.dtype != jnp.float64):
+        return by_lu().reshape(R.shape)
+
+    def by_cholesky():  # where symmetric the coupling's terms are zero: K is the terms'
+        a, b, B, k = terms
+        K = assemble_dense(model, sub, a, b, B, B, k, diag)
+        return jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(K), rhs)
+
+    # NaN stands for "not solved" (the unsymmetric matrix, or Cholesky's factor of one
+    # that is not positive definite): one LU in the program for both.
+    x = jax.lax.cond(jnp.asarray(symmetric), by_cholesky, lambda: jnp.full_like(rhs, jnp.nan))
+    x = jax.lax.cond(jnp.all(jnp.isfinite(x)), lambda: x, by_lu)
+    return x.reshape(R.shape)
+
+
+#: Unknowns above which :func:`solve_dense` factorises a symmetric matrix by Cholesky:
+#: more than any dense choice of a CPU's "auto" (600), so that those programs, and their
+#: answers, stay as they were; every dense solve of a GPU but the smallest scenes'.
+DENSE_CHOLESKY_ABOVE = 600
 
 
 def host_matrix(rows, cols, blocks, n: int):

@@ -36,12 +36,13 @@ from jaxdem.core.state import ROCK, WALL_FIXED, WALL_ROLLER, Model, State, empty
 _USE_CELLS_ABOVE = 400  # blocks; below this all-pairs boxes are cheaper
 _DENSE_UP_TO = 600  # unknowns; above this sparse direct (CPU) or iterative (GPU, batches)
 _DENSE_UP_TO_ACCELERATOR = 32_000
-"""Unknowns up to which "auto" takes the dense LU on a GPU or TPU: its float64 matrix is
+"""Unknowns up to which "auto" takes the dense path on a GPU or TPU (LU, Cholesky where the
+matrix is symmetric: :func:`jaxdem.core._linsolve.solve_dense`): its float64 matrix is
 8 GB at 32,000 unknowns (a 10,000-block grid), a tenth of an 80 GB card. Above it "cg",
 which has no slip coupling and stopped at the iteration limit on seed examples 2 and 4
 and the 1,600- and 10,000-block grids (issue 30): on a GPU the dense LU is the path that
-converges wherever the CPU's does (the same Newton iterates, tests/test_scaling.py).
-Not timed on a GPU yet."""
+converges wherever the CPU's does (the same Newton iterates, tests/test_scaling.py);
+timed on an H100 (BENCHMARKS.md, "GPU")."""
 # Unknowns up to which a single solve on a CPU above _DENSE_UP_TO would take "cg" (its
 # program caches on disk). Not above _DENSE_UP_TO, i.e. no such band: the cg path
 # has no slip coupling, and on seed example 4 (228 blocks) it ran into the iteration
