@@ -252,8 +252,7 @@ def test_pcg_and_compaction_match_a_dense_solve():
     assert packed[3].shape[0] < terms[3].shape[0]
     assert np.isclose(np.sum(np.abs(packed[3])), np.sum(np.abs(terms[3])))
     x_cg = solve_cg(mdl, sub, terms, ev.R, 1e-12)
-    a, b, B, k = terms
-    x_dense = solve_dense(mdl, sub, (a, b, B, B, k), ev.R)
+    x_dense = solve_dense(mdl, sub, terms, ev.R)
     np.testing.assert_allclose(np.asarray(x_cg), np.asarray(x_dense), rtol=0,
                                atol=1e-9 * np.abs(np.asarray(x_dense)).max())
 
