@@ -111,7 +111,7 @@ def test_sparse_solve_of_one_iteration_matches_dense_lu(path, monkeypatch):
 def test_dense_cholesky_of_one_iteration_matches_lu(case, monkeypatch):
     """Above DENSE_CHOLESKY_ABOVE unknowns (a GPU's dense path; lowered here to 0) the
     dense path factorises a symmetric Newton matrix by Cholesky: LU's answer to 1e-10 on
-    the tunnel's first sub-step, without an LU (one that gave NaN here would show). The
+    the tunnel's first sub-step, without an LU (``jnp.linalg.solve`` gives NaN here). The
     slip tangent (unsymmetric) and a symmetric matrix that is not positive definite
     (Cholesky's factor is then NaN) are LU's: its answer to round-off."""
     from jaxdem.core import _linsolve

@@ -40,7 +40,7 @@ _DENSE_UP_TO_ACCELERATOR = 32_000
 matrix is symmetric: :func:`jaxdem.core._linsolve.solve_dense`): its float64 matrix is
 8 GB at 32,000 unknowns (a 10,000-block grid), a tenth of an 80 GB card. Above it "cg",
 which has no slip coupling and stopped at the iteration limit on seed examples 2 and 4
-and the 1,600- and 10,000-block grids (issue 30): on a GPU the dense LU is the path that
+and the 1,600- and 10,000-block grids (issue 30): on a GPU the dense path is the one that
 converges wherever the CPU's does (the same Newton iterates, tests/test_scaling.py);
 timed on an H100 (BENCHMARKS.md, "GPU")."""
 # Unknowns up to which a single solve on a CPU above _DENSE_UP_TO would take "cg" (its
