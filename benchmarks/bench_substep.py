@@ -92,7 +92,7 @@ def main() -> None:
 
     def assembly(m, sb, ev):
         a, b, B, k = stiffness_terms(m, sb, ev, False, None)
-        diag = jnp.where(jnp.repeat(sb.free, m.ndof), m.pseudo_mass.reshape(-1), 1.0)
+        diag = _linsolve.pseudo_mass_diagonal(m, sb)
         return _linsolve.coo_of_blocks(m, *_linsolve.stiffness_blocks(m, sb, a, b, B, B, k,
                                                                       diag), upper=True)
 

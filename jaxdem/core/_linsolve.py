@@ -151,6 +151,22 @@ def assemble_dense(model: Model, sub: Sub, a, b, L, Rt, k, diag):
     return K4.reshape(N * D, N * D)
 
 
+def pseudo_mass_diagonal(model: Model, sub: Sub):
+    """The (D N,) diagonal added to K: eps M on the free blocks' unknowns, 1 elsewhere (a
+    fixed or dead block's rows then solve to a zero step)."""
+    return jnp.where(jnp.repeat(sub.free, model.ndof), model.pseudo_mass.reshape(-1), 1.0)
+
+
+def _lu_alone(model: Model, dtype) -> bool:
+    """Whether the direct paths factorise by LU whatever the symmetry (static): only a
+    matrix positive definite beyond rounding may go to Cholesky, which is a float64 one
+    (eps M, a millionth of the stiffness, is far above its rounding; float32 rounding
+    broke seed example 2's for CHOLMOD) of springs and cells alone (a bolt's geometric
+    stiffness F H can be indefinite in rotation), in a single solve (under vmap, a batch's
+    ``model.lanes``, a cond would run both factorisations)."""
+    return model.lanes is not None or bool(model.n_bolts) or dtype != jnp.float64
+
+
 def solve_dense(model: Model, sub: Sub, terms, R, symmetric=True, coupling=None):
     """(K_t + eps M)^-1 R on the assembled (D N, D N) matrix.
 
@@ -160,23 +176,19 @@ def solve_dense(model: Model, sub: Sub, terms, R, symmetric=True, coupling=None)
     dense path of a GPU, which "auto" takes up to 32,000 unknowns), by Cholesky: n^3 / 3
     operations against LU's 2 n^3 / 3 (seed example 2's 7,680 unknowns on the 2-core
     CPU: 2.4 s against 3.4), LU where its answer is not finite (a matrix not positive
-    definite). LU alone in a batch (``model.lanes``: under vmap a choice between the two
-    would run both, and two batched LAPACK calls that may run at once can deadlock XLA's
+    definite). LU alone where :func:`_lu_alone` says so, as on the sparse path (in a
+    batch also because two batched LAPACK calls that may run at once can deadlock XLA's
     CPU thread pool, see :func:`jaxdem.batch._one_per_device`; LU costs about 7% of a
-    batched sweep's time, measured on the 52-block benchmark tunnel), in float32 (its
-    rounding of eps M, a millionth of the stiffness, can leave the matrix indefinite, as
-    it did seed example 2's for CHOLMOD) and with bolts (a bolt's geometric stiffness can
-    be indefinite in rotation), as on the sparse path.
+    batched sweep's time, measured on the 52-block benchmark tunnel).
     """
-    diag = jnp.where(jnp.repeat(sub.free, model.ndof), model.pseudo_mass.reshape(-1), 1.0)
+    diag = pseudo_mass_diagonal(model, sub)
     rhs = R.reshape(-1)
 
     def by_lu():
         K = assemble_dense(model, sub, *_unsymmetric(sub, terms, coupling), diag)
         return jnp.linalg.solve(K, rhs)
 
-    if (model.n_blocks * model.ndof <= DENSE_CHOLESKY_ABOVE or model.lanes is not None
-            or model.n_bolts or R.dtype != jnp.float64):
+    if model.n_blocks * model.ndof <= DENSE_CHOLESKY_ABOVE or _lu_alone(model, R.dtype):
         return by_lu().reshape(R.shape)
 
     def by_cholesky():  # where symmetric the coupling's terms are zero: K is the terms'
@@ -270,7 +282,7 @@ def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True,
     the blocks of unused pairs zero); float32 scenes are solved in float64.
     Without sparsax, SciPy's SuperLU on the host (:func:`_host_sparse_solve`).
     """
-    diag = jnp.where(jnp.repeat(sub.free, model.ndof), model.pseudo_mass.reshape(-1), 1.0)
+    diag = pseudo_mass_diagonal(model, sub)
     rhs = R.reshape(-1)
     sparsax = _sparsax()
 
@@ -285,11 +297,8 @@ def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True,
         return x.reshape(R.shape)
     b64 = rhs.astype(jnp.float64)
     # CHOLMOD stops the whole program where its matrix is not positive definite, so it
-    # only gets what is positive definite beyond rounding: a float64 matrix (eps M, a
-    # millionth of the stiffness, is far above its rounding; float32 rounding broke
-    # seed example 2's) of springs and cells alone (a bolt's geometric stiffness F H
-    # can be indefinite in rotation), in a single solve (under vmap a cond runs both).
-    if model.lanes is not None or model.n_bolts or R.dtype != jnp.float64:
+    # only gets what :func:`_lu_alone` lets through.
+    if _lu_alone(model, R.dtype):
         x = sparsax.lu_solve(*coo_of_blocks(model, *whole()), b64)
         return x.astype(R.dtype).reshape(R.shape)
     a, b, B, k = terms
