@@ -295,3 +295,25 @@ def test_float32_batch_matches_float64(tunnel):
     double = solve_batch(tunnel, TUNNEL_PARAMS[:2], theta)
     assert single.converged.all() and double.converged.all()
     np.testing.assert_allclose(single.monitors["span"], double.monitors["span"], rtol=1e-3)
+
+
+def test_threads_that_free_sparse_factorisations_do_not_disturb_each_other():
+    """Two threads solve samples one at a time on the sparse path (CHOLMOD, and GMRES on
+    its factor where the slip tangent is taken) and each frees sparsax's patterns and factors after
+    every increment, while the other may be between two of its solves: every sample is
+    still its single solve (to round-off), and nothing is left in sparsax's cache."""
+    sparsax = pytest.importorskip("sparsax")
+    d = jointed_tunnel(water=False, bolts=False)
+    d["solver"] = {**d.get("solver", {}), "linear_solver": "sparse"}
+    scene = parse_scene(d)
+    params = ["joints.set1.kn", "joints.set2.friction_deg"]
+    theta = np.array([[2.0e6, 30.0], [1.0e6, 22.0], [4.0e6, 38.0], [3.0e6, 26.0]])
+    before = sparsax.factorization_count()
+    batch = solve_batch(scene, params, theta, chunk=1, workers=2)
+    assert sparsax.factorization_count() > before
+    assert sparsax.cache_size() == 0
+    assert batch.converged.all()
+    for i, row in enumerate(theta):
+        single = jaxdem.solve(scene, set=dict(zip(params, row, strict=True)))
+        crown = np.array(single.monitors["crown"]["displacement"])
+        np.testing.assert_allclose(batch.monitors["crown"][i], crown, rtol=1e-8, atol=1e-12)

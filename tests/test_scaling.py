@@ -107,6 +107,82 @@ def test_sparse_solve_of_one_iteration_matches_dense_lu(path, monkeypatch):
                                atol=1e-10 * scale)
 
 
+def _resident_mb() -> float:
+    """This process's resident memory (Linux), after glibc returns what it can."""
+    import ctypes
+
+    ctypes.CDLL("libc.so.6").malloc_trim(0)
+    return int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1e6
+
+
+@pytest.mark.skipif(not Path("/proc/self/statm").exists(), reason="reads Linux's /proc")
+def test_slip_solves_keep_no_factor_behind():
+    """The slip tangent's GMRES solves with CHOLMOD's factor of the symmetric part, a
+    new factor each time the values change; memory must not grow with the number of
+    those solves. sparsax 0.9's factor tokens keep a copy of every factor made until
+    its cache is cleared (about 1 GB after seed example 3's run): 45 solves of a 30 x
+    30 grid's matrix (3,072 unknowns, padding included) would keep 45 copies. The
+    answer is still the dense LU's (1e-10)."""
+    from jaxdem.core._linsolve import _solve_sparse, release_factorisations
+
+    n = 30
+    blocks = [{"vertices": [[-1, -1], [n + 1, -1], [n + 1, 0], [-1, 0]], "material": "rock",
+               "fixed": True}]
+    blocks += [{"vertices": [[i, j], [i + 1, j], [i + 1, j + 1], [i, j + 1]], "material": "rock"}
+               for i in range(n) for j in range(n)]
+    d = stack(1)
+    d.update(blocks=blocks, monitors=[{"name": "top", "point": [0.5, n - 0.5]}])
+    model, state, _ = model_mod.build(parse_scene(_with_solver(d, linear_solver="sparse")))
+    loads = make_loads(model, model.f_ext)
+    mdl, sub, st0, _, _ = prepare_substep(model, state, loads)
+    ev = evaluate(mdl, sub, jnp.zeros_like(loads.force), jnp.zeros_like(st0, bool), st0,
+                  st0, 0.0)
+    a, b, L, k = stiffness_terms(mdl, sub, ev, False)
+    third = sub.geo.active & (jnp.arange(st0.shape[0]) % 3 == 0)
+    coupling = (sub.geo.a, sub.geo.b, sub.Bs, sub.Bn, jnp.where(third, -0.6 * sub.prop.kn, 0.0))
+    R = jnp.where(sub.free[:, None], 1.0, 0.0) * jnp.ones((mdl.n_blocks, mdl.ndof))
+    solve = jax.jit(lambda scale: _solve_sparse(mdl, sub, (a, b, L, k * scale), R,
+                                                symmetric=jnp.asarray(False), coupling=coupling))
+    x = solve(1.0).block_until_ready()  # compiled, and a first pattern analysed
+    x_lu = solve_dense(mdl, sub, (a, b, L, k), R, symmetric=False, coupling=coupling)
+    np.testing.assert_allclose(np.asarray(x), np.asarray(x_lu), rtol=0,
+                               atol=1e-10 * float(np.abs(np.asarray(x_lu)).max()))
+    for i in range(15):  # the first solves allocate what later ones reuse
+        solve(1.0 + 0.01 * (i + 1)).block_until_ready()
+    before = _resident_mb()
+    for i in range(15, 60):
+        solve(1.0 + 0.01 * (i + 1)).block_until_ready()
+    grown = _resident_mb() - before
+    release_factorisations()
+    # With factor tokens these 45 solves kept 70 MB (a copy of 1.55 MB each, measured).
+    assert grown < 15, f"{grown:.1f} MB kept by 45 slip solves"
+
+
+def test_sparse_factorisations_are_released_after_each_increment():
+    """sparsax keeps every sparsity pattern it has analysed (a new one nearly every
+    sub-step) with its factors; the host frees them after each increment, so that a
+    long analysis does not grow by a pattern a sub-step. After every increment of the
+    staged jointed tunnel on the sparse path (sparsax factorised in each), none is
+    left, and the answer is the dense path's (to 1e-10)."""
+    sparsax = pytest.importorskip("sparsax")
+    seen = []
+
+    def progress(p):
+        seen.append((sparsax.cache_size(), sparsax.factorization_count()))
+
+    tunnel = _with_solver(jointed_tunnel(water=False, bolts=False), load_steps=3)
+    start = sparsax.factorization_count()
+    r = jaxdem.solve(parse_scene(_with_solver(tunnel, linear_solver="sparse")), progress=progress)
+    assert r.converged, r.status
+    assert len(seen) >= 4
+    assert [size for size, _ in seen] == [0] * len(seen)
+    counts = [start] + [count for _, count in seen]
+    assert np.all(np.diff(counts) > 0), counts  # sparsax factorised in every increment
+    dense = jaxdem.solve(parse_scene(_with_solver(tunnel, linear_solver="dense")))
+    u, u_ref = (np.array([bl["u"] for bl in x.blocks]) for x in (r, dense))
+    np.testing.assert_allclose(u, u_ref, rtol=0, atol=1e-10 * np.abs(u_ref).max())
+
+
 @pytest.mark.parametrize("case", ["symmetric", "slip coupling", "not positive definite"])
 def test_dense_cholesky_of_one_iteration_matches_lu(case, monkeypatch):
     """Above DENSE_CHOLESKY_ABOVE unknowns (a GPU's dense path; lowered here to 0) the

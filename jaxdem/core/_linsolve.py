@@ -262,6 +262,26 @@ def _sparsax():
     return sparsax
 
 
+def release_factorisations() -> None:
+    """Free what sparsax keeps from one solve to the next: the analysis of every sparsity
+    pattern it has seen, and their numeric factors.
+
+    sparsax keeps them for the life of the process, and a new pattern comes nearly every
+    sub-step, as contacts open and close (about 2 MB each at 4,608 unknowns, 15 MB at
+    30,720, and up to 32 KLU factors a pattern), so a long analysis of a large scene
+    would grow by that much a sub-step. The host calls this after each increment
+    (:func:`jaxdem.solver.run_increment`, :mod:`jaxdem.batch`): within an increment the
+    patterns and factors are reused, and the next increment analyses its first pattern
+    again (milliseconds). Safe while other threads solve: every CHOLMOD call holds
+    sparsax's lock for its whole work and no factor token of jaxdem outlives its call
+    (:func:`_slip_gmres`), and KLU's patterns are reference-counted, so a thread whose
+    pattern went analyses it again.
+    """
+    sparsax = _sparsax()
+    if sparsax is not None:
+        sparsax.clear_cache()
+
+
 def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True, coupling=None):
     """(K_t + eps M)^-1 R by a sparse direct solve inside the compiled program.
 
@@ -343,12 +363,16 @@ def _slip_gmres(model: Model, sparsax, sym, upper, coupling, b, fallback):
     about 5 on seed example 2). CHOLMOD's factor of K_s (its pattern's analysis
     shared with the sub-step's secant iterations) and its triangular solves cost a
     fraction of KLU's factorisation of K: on seed example 2, 31 ms a factor and 2 a
-    solve, against 95-140 ms an LU. Where GMRES does not reach :data:`GMRES_RTOL` in
+    solve, against 95-140 ms an LU. The preconditioner is sparsax's ``solve`` on K_s's
+    triplets: it factorises on the first call and finds the same values in the others
+    (a comparison of the triplets, under a millisecond at 4,608 unknowns). Not its
+    factor tokens (``factor`` / ``solve_factor``): sparsax 0.9 keeps a copy of every
+    factor a token was made for until its cache is cleared (about 1 GB after seed
+    example 3's run). Where GMRES does not reach :data:`GMRES_RTOL` in
     :data:`GMRES_MAX` iterations (checked on the true residual), ``fallback`` (KLU on
     K) answers instead.
     """
     N, D = model.n_blocks, model.ndof
-    token = sparsax.factor(*upper, b.shape[0])
     ca, cb, cL, cR, ck = coupling
 
     def matvec(x):
@@ -356,7 +380,7 @@ def _slip_gmres(model: Model, sparsax, sym, upper, coupling, b, fallback):
         return (blocks_times(model, *sym, x)
                 + scatter_pairs(N, ca, cb, coupled[:, None] * cL).reshape(-1))
 
-    x = _gmres(matvec, lambda r: sparsax.solve_factor(token, r), b, GMRES_RTOL, GMRES_MAX)
+    x = _gmres(matvec, lambda r: sparsax.solve(*upper, r), b, GMRES_RTOL, GMRES_MAX)
     ok = jnp.linalg.norm(b - matvec(x)) <= 10 * GMRES_RTOL * jnp.linalg.norm(b)
     return jax.lax.cond(ok, lambda: x, fallback)
 
