@@ -333,9 +333,9 @@ def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True,
     else:
         def slip():
             # K's triplets for the fallback are formed here, outside _slip_gmres's cond:
-            # formed inside its untaken branch, JAX 0.10 lowered the program with
-            # sparsax's factor call untyped, which XLA then refused (seen where the
-            # scene's arrays are constants of an outer jit).
+            # formed inside its untaken branch, JAX 0.10 lowered the program with a
+            # sparsax call untyped (then GMRES's factor-token call), which XLA refused
+            # (seen where the scene's arrays are constants of an outer jit).
             whole_coo = coo_of_blocks(model, *whole())
             return _slip_gmres(model, sparsax, sym, upper, coupling, b64,
                                lambda: sparsax.lu_solve(*whole_coo, b64))
