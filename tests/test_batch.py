@@ -299,9 +299,10 @@ def test_float32_batch_matches_float64(tunnel):
 
 def test_threads_that_free_sparse_factorisations_do_not_disturb_each_other():
     """Two threads solve samples one at a time on the sparse path (CHOLMOD, and GMRES on
-    its factor where the slip tangent is taken) and each frees sparsax's patterns and factors after
-    every increment, while the other may be between two of its solves: every sample is
-    still its single solve (to round-off), and nothing is left in sparsax's cache."""
+    its factor where the slip tangent is taken), and each frees sparsax's patterns and
+    factors after every increment, while the other may be between two of its solves:
+    every sample is still its single solve (to round-off), and nothing is left in
+    sparsax's cache."""
     sparsax = pytest.importorskip("sparsax")
     d = jointed_tunnel(water=False, bolts=False)
     d["solver"] = {**d.get("solver", {}), "linear_solver": "sparse"}
