@@ -40,7 +40,7 @@ from jax.sharding import Mesh, PartitionSpec
 from jaxdem.config import float64
 from jaxdem.core import model as model_mod
 from jaxdem.core.compile_cache import QUICK_WORK, compiled_program, on_disk
-from jaxdem.core.increment import release_factorisations, substeps_to_equilibrium
+from jaxdem.core.increment import bounded_factorisations, substeps_to_equilibrium
 from jaxdem.core.loads import in_situ_preload, release_forces
 from jaxdem.core.state import Loads, grow_capacity
 from jaxdem.core.status import Status
@@ -508,9 +508,9 @@ class _BatchDriver:
                                       quick=self.quick)
             if self.ready is not None:
                 self.ready.set()
-            new, info = fn(self.model, self.fields, self.state, loads, skip)
-            status = np.asarray(info.status)
-            release_factorisations()
+            with bounded_factorisations():  # sparsax's memory, up to the program's result
+                new, info = fn(self.model, self.fields, self.state, loads, skip)
+                status = np.asarray(info.status)
             self.compile_s += dt
             self.solve_s += time.perf_counter() - t1 - dt
             over = (status == Status.CAPACITY_OVERFLOW.code) & self.live

@@ -28,7 +28,7 @@ import numpy as np
 from jaxdem.config import float64
 from jaxdem.core import model as model_mod
 from jaxdem.core.compile_cache import COMPILE_TIMES, QUICK_WORK, compiled_program, prefetch
-from jaxdem.core.increment import increment, increment_tangent, release_factorisations
+from jaxdem.core.increment import bounded_factorisations, increment, increment_tangent
 from jaxdem.core.loads import in_situ_preload, make_loads, release_forces_jit
 from jaxdem.core.sensitivities import STATE_FLOATS, preload_tangent, release_with_tangent
 from jaxdem.core.state import OPEN, Loads, Model, State, grow_capacity
@@ -637,13 +637,15 @@ def run_increment(model: Model, state: State, loads: Loads, tangents: dict | Non
     while True:
         if tangents is None:
             fn, dt = compiled_program(increment, model, state, loads, quick=quick)
-            new, info = fn(model, state, loads)
+            args = (model, state, loads)
         else:
             fn, dt = compiled_program(increment_tangent, model, state, loads, tangents)
-            new, info = fn(model, state, loads, tangents)
+            args = (model, state, loads, tangents)
+        with bounded_factorisations():  # sparsax's memory, up to the program's result
+            new, info = fn(*args)
+            status = Status.of(info.status)
         compile_s += dt
-        if Status.of(info.status) != Status.CAPACITY_OVERFLOW:
-            release_factorisations()
+        if status != Status.CAPACITY_OVERFLOW:
             return model, new, info, compile_s
         model = model_mod.grown(model, bool(info.cell_full), bool(info.slots_full),
                                 int(info.touch_needed))

@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 import textwrap
+import threading
 from pathlib import Path
 
 import jax
@@ -109,7 +110,7 @@ def test_sparse_solve_of_one_iteration_matches_dense_lu(path, monkeypatch):
 
 # The measurement of test_slip_solves_keep_no_factor_behind, run in a process of its own: in
 # the test's process other threads (programs compiled or loaded in the background for
-# other tests) allocated up to 58 MB while it measured.
+# other tests) allocate while it measures.
 _SLIP_SOLVES_MEMORY = """
 import ctypes, json, os, sys
 from pathlib import Path
@@ -146,10 +147,14 @@ solve = jax.jit(lambda scale: _solve_sparse(mdl, sub, (a, b, L, k * scale), R,
                                             symmetric=jnp.asarray(False), coupling=coupling))
 for i in range(10):  # the first solves allocate what later ones reuse
     solve(1.0 + 0.01 * (i + 1)).block_until_ready()
-before = resident_mb()
+held = []
 for i in range(10, 40):  # new values each time: a new factor each time
     solve(1.0 + 0.01 * (i + 1)).block_until_ready()
-print(json.dumps({"unknowns": mdl.n_blocks * mdl.ndof, "grown_mb": resident_mb() - before}))
+    held.append(resident_mb())
+# Growth a solve: the median over 15 spans of 15 solves (a 58 MB buffer of XLA's is, or
+# is not yet, given back at some of the readings).
+grown = sorted(held[i + 15] - held[i] for i in range(15))[7] / 15
+print(json.dumps({"unknowns": mdl.n_blocks * mdl.ndof, "mb_a_solve": grown}))
 """
 
 
@@ -159,8 +164,9 @@ def test_slip_solves_keep_no_factor_behind():
     new factor each time the values change; memory must not grow with the number of
     those solves. sparsax 0.9's factor tokens keep a copy of every factor made until
     its cache is cleared (about 1 GB after seed example 3's run): 30 solves of a 50 x
-    50 grid's matrix (7,680 unknowns, padding included) kept 30 copies of 5 MB, 151 MB
-    (measured with the tokens). Measured in a fresh process.
+    50 grid's matrix (7,680 unknowns, padding included) kept a copy of 5 MB each, 151 MB
+    (measured with the tokens). Measured in a fresh process, as the median growth over
+    spans of 15 solves.
     (That these solves are right: test_sparse_solve_of_one_iteration_matches_dense_lu.)"""
     root = str(Path(__file__).parents[1])
     env = {**os.environ, "PYTHONPATH": root + os.pathsep + os.environ.get("PYTHONPATH", "")}
@@ -169,7 +175,7 @@ def test_slip_solves_keep_no_factor_behind():
     assert out.returncode == 0, out.stderr[-3000:]
     measured = json.loads(out.stdout.strip().splitlines()[-1])
     assert measured["unknowns"] == 7680
-    assert measured["grown_mb"] < 30, f"{measured['grown_mb']:.1f} MB kept by 30 slip solves"
+    assert measured["mb_a_solve"] < 1.0, f"{measured['mb_a_solve']:.2f} MB kept a slip solve"
 
 
 def test_sparse_factorisations_are_released_after_each_increment():
@@ -196,6 +202,40 @@ def test_sparse_factorisations_are_released_after_each_increment():
     dense = jaxdem.solve(parse_scene(_with_solver(tunnel, linear_solver="dense")))
     u, u_ref = (np.array([bl["u"] for bl in x.blocks]) for x in (r, dense))
     np.testing.assert_allclose(u, u_ref, rtol=0, atol=1e-10 * np.abs(u_ref).max())
+
+
+def test_freeing_sparse_factorisations_while_an_increment_runs_changes_no_number(monkeypatch):
+    """While an increment runs, a thread frees sparsax's patterns and factors where it holds
+    more than MAX_PATTERNS (jaxdem.core._linsolve.bounded_factorisations). Freed as often
+    as it can be (no pattern kept, looked at every millisecond), between the solves of
+    the running program, solves analyse and factorise their matrices again, to the same
+    numbers: the answer is bitwise the one with nothing freed mid-increment. Seed example
+    4 dry on the sparse path (768 unknowns, 237 Newton iterations; measured: 630 frees by
+    the watcher, 630 factorisations against 159, the same answer)."""
+    sparsax = pytest.importorskip("sparsax")
+    from jaxdem.core import _linsolve
+
+    scene = jaxdem.load_scene(EXAMPLES / "seed_example4_slope_dry.toml")
+    monkeypatch.setattr(_linsolve, "MAX_PATTERNS", 10**6)
+    start = sparsax.factorization_count()
+    kept = jaxdem.solve(scene)
+    once = sparsax.factorization_count() - start
+    freed, clear = [], sparsax.clear_cache
+
+    def counted():
+        freed.append(threading.current_thread().name)
+        clear()
+
+    monkeypatch.setattr(_linsolve, "MAX_PATTERNS", 0)
+    monkeypatch.setattr(_linsolve, "WATCH_EVERY_S", 0.001)
+    monkeypatch.setattr(sparsax, "clear_cache", counted)
+    start = sparsax.factorization_count()
+    often = jaxdem.solve(scene)
+    assert kept.converged and often.converged
+    assert freed.count("jaxdem-sparsax-bound") >= 20, freed  # mid-increment, by the watcher
+    assert sparsax.factorization_count() - start > once  # value-skips lost: solved again
+    assert [b["u"] for b in often.blocks] == [b["u"] for b in kept.blocks]
+    assert often.monitors == kept.monitors
 
 
 @pytest.mark.parametrize("case", ["symmetric", "slip coupling", "not positive definite"])

@@ -15,6 +15,10 @@ gather/scatter of :mod:`jaxdem.core.kinematics`; used by the Newton iteration
 
 from __future__ import annotations
 
+import contextlib
+import threading
+import time
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -267,19 +271,69 @@ def release_factorisations() -> None:
     pattern it has seen, and their numeric factors.
 
     sparsax keeps them for the life of the process, and a new pattern comes nearly every
-    sub-step, as contacts open and close (about 2 MB each at 4,608 unknowns, 15 MB at
-    30,720, and up to 32 KLU factors a pattern), so a long analysis of a large scene
-    would grow by that much a sub-step. The host calls this after each increment
-    (:func:`jaxdem.solver.run_increment`, :mod:`jaxdem.batch`): within an increment the
-    patterns and factors are reused, and the next increment analyses its first pattern
-    again (milliseconds). Safe while other threads solve: every CHOLMOD call holds
-    sparsax's lock for its whole work and no factor token of jaxdem outlives its call
-    (:func:`_slip_gmres`), and KLU's patterns are reference-counted, so a thread whose
-    pattern went analyses it again.
+    sub-step, as contacts open and close (6 MB a pattern on a 40 x 40 grid's 5,376
+    unknowns, 15-18 on seed example 3's 4,608 in meshed rock, with up to 32 KLU factors
+    a pattern), so a long analysis of a large scene would grow by that much a sub-step.
+    The host frees them while an increment runs and after it
+    (:func:`bounded_factorisations`). Safe while other threads solve: every CHOLMOD call
+    holds sparsax's lock for its whole work and no factor token of jaxdem outlives its
+    call (:func:`_slip_gmres`), and KLU's patterns are reference-counted; a solve whose
+    pattern went analyses it again and factorises again, to the same numbers.
     """
     sparsax = _sparsax()
     if sparsax is not None:
         sparsax.clear_cache()
+
+
+#: :func:`bounded_factorisations`: the patterns sparsax may hold while an increment runs
+#: (more, and they are all freed), and how often that is looked at (s).
+MAX_PATTERNS = 4
+WATCH_EVERY_S = 0.2
+
+_RUNNING = {"count": 0, "watcher": None}  # increments in flight and the watching thread
+_RUNNING_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def bounded_factorisations():
+    """Hold sparsax's memory to a few patterns while the body runs (an increment's program,
+    up to its result), and free it all when the body ends.
+
+    An increment is one program, and a pattern comes nearly every geometry update: a
+    failing step of seed example 3 (40 geometry updates) went from 0.7 to 1.2 GB. A
+    thread of its own (one for all the increments in flight, such as a sweep's workers)
+    looks every :data:`WATCH_EVERY_S` seconds and frees them all
+    (:func:`release_factorisations`) where there are more than :data:`MAX_PATTERNS`; the
+    pattern in use is then analysed and factorised again, once.
+    """
+    sparsax = _sparsax()
+    if sparsax is None:
+        yield
+        return
+    with _RUNNING_LOCK:
+        _RUNNING["count"] += 1
+        if _RUNNING["watcher"] is None:
+            _RUNNING["watcher"] = threading.Thread(target=_watch, args=(sparsax,), daemon=True,
+                                                   name="jaxdem-sparsax-bound")
+            _RUNNING["watcher"].start()
+    try:
+        yield
+    finally:
+        with _RUNNING_LOCK:
+            _RUNNING["count"] -= 1
+        release_factorisations()
+
+
+def _watch(sparsax) -> None:
+    """The thread of :func:`bounded_factorisations`: it ends once no increment runs."""
+    while True:
+        with _RUNNING_LOCK:
+            if _RUNNING["count"] == 0:
+                _RUNNING["watcher"] = None
+                return
+        if sparsax.cache_size() > MAX_PATTERNS:
+            release_factorisations()
+        time.sleep(WATCH_EVERY_S)
 
 
 def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True, coupling=None):

@@ -24,8 +24,8 @@ installed bolts) and looks for static equilibrium with large displacements:
 Owns :func:`increment` and :func:`increment_tangent` (jitted), the loop of
 sub-steps :func:`substeps_to_equilibrium` that sets the :class:`jaxdem.core.status.Status` of
 the increment, and :func:`_joint_motion` (largest joint slip and opening); it hands the
-host's loop ``release_factorisations`` (:mod:`jaxdem.core._linsolve`), called after
-each increment.
+host's loop ``bounded_factorisations`` (:mod:`jaxdem.core._linsolve`), which holds
+sparsax's memory while an increment runs.
 
 Data flow: takes one sub-step from :mod:`jaxdem.core._substep` (and its
 derivatives from :mod:`jaxdem.core.sensitivities`) and the tolerances of
@@ -40,7 +40,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxdem.core._linsolve import release_factorisations  # noqa: F401 (for the host's loop)
+from jaxdem.core._linsolve import bounded_factorisations  # noqa: F401 (for the host's loop)
 from jaxdem.core._substep import Unbalanced, substep
 from jaxdem.core.compile_cache import on_disk
 from jaxdem.core.kinematics import block_travel, rotate_vectors
