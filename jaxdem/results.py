@@ -25,6 +25,7 @@ from jaxdem import geometry
 from jaxdem.core.kinematics import bolt_geometry, rotate_vectors, strain_times
 from jaxdem.core.state import OPEN, SLIP
 from jaxdem.core.status import IMBALANCE_FACTOR, LARGE_SLIP, OVERLAP_TOL, STRENGTH_TOL, Status
+from jaxdem.rockmass import small_block_area
 
 
 @dataclasses.dataclass
@@ -492,6 +493,49 @@ def back_and_forth(moving, u, rot, radius, max_displacement: float) -> str | Non
             f"shows: review (README, \"Known limits\")")
 
 
+def loose_limit(scene) -> float:
+    """The largest group of blocks falling free that a stage removes and goes on (m3 per m
+    of tunnel, the group's area): ``solver.max_loose_volume``, else a small block of the
+    rock mass, :func:`jaxdem.rockmass.small_block_area` (0.1 x the smallest joint-set
+    spacing squared, the default of ``domain.min_block_area``; 0 without joint sets, where
+    a falling block is the answer, a key block, unless the scene says otherwise)."""
+    if scene.solver.max_loose_volume is not None:
+        return float(scene.solver.max_loose_volume)
+    return small_block_area(scene)
+
+
+def small_mechanism(moving, area, limit: float, centroids) -> str | None:
+    """The warning for a mechanism of small pieces, else None.
+
+    A mechanism is reported wherever a block keeps moving, however small it is. Where the
+    moving blocks (``moving``: their ids) are together no larger than ``limit`` (m2, m3
+    per m of tunnel: ``solver.max_loose_volume``, else its default, a small block of the
+    rock mass; 0: no warning) they are pieces working loose, not a collapse: ravelling at
+    an opening, or slivers of a mesh where its lines, a joint and an opening's outline
+    cross close together (seed example 3: two cut cells of 0.035 and 0.013 m2 at a
+    tunnel's wall turn over; 0.37 m2 in eight pieces without D). They were not removed
+    as loose blocks (``solver.loose_blocks`` removes only groups that fall free of the rock,
+    and none where it is ``"stop"``).
+    ``area`` (n,) each rock block's area (m2), ``centroids`` (n, 2) where they were (m).
+    """
+    if not moving or limit <= 0.0:
+        return None
+    ids = np.asarray(moving)
+    total = float(np.sum(area[ids]))
+    if total > limit:
+        return None
+    k = int(ids[np.argmax(area[ids])])
+    names = ", ".join(str(int(i)) for i in ids[:10]) + (", ..." if len(ids) > 10 else "")
+    x, y = centroids[k]
+    return (f"unstable, but the mechanism is small: blocks {names}, {total:.3g} m3/m in all "
+            f"(solver.max_loose_volume: {limit:.3g}), the largest at ({x:.3g}, {y:.3g}): "
+            f"pieces that work loose (at an opening: ravelling, or slivers cut where mesh "
+            f"lines, joints and its outline cross close together), not a collapse of the "
+            f"rock mass; not removed as loose blocks (solver.loose_blocks removes groups "
+            f"that fall free of the rock); review "
+            f"(README, \"Loose blocks\")")
+
+
 def stage_frame(scene, model, layout, state, ref, info, bolt_active, name: str, index: int,
                 increments: int) -> dict[str, Any]:
     """Host copies of the state at the end of a stage (or where the analysis stopped in it),
@@ -702,6 +746,10 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
     chatter = back_and_forth(moving, u, rot, np.asarray(model.radius), max_disp)
     if chatter:
         warnings.append(chatter)
+    small = small_mechanism(moving, np.asarray(model.area)[:nr], loose_limit(scene),
+                            np.asarray(layout.centroids)[:nr])
+    if small:
+        warnings.append(small)
     verts = np.asarray(state.verts)
     nv = np.asarray(model.nv)
     geometry = {

@@ -33,8 +33,7 @@ from jaxdem.core.loads import in_situ_preload, make_loads, release_forces_jit
 from jaxdem.core.sensitivities import STATE_FLOATS, preload_tangent, release_with_tangent
 from jaxdem.core.state import OPEN, Loads, Model, State, grow_capacity
 from jaxdem.core.status import Status, global_imbalance
-from jaxdem.results import build_result, monitor_values, stage_frame
-from jaxdem.rockmass import small_block_area
+from jaxdem.results import build_result, loose_limit, monitor_values, stage_frame
 
 __all__ = ["COMPILE_TIMES", "Data", "Status", "gravity_material", "increment_arguments",
            "increment_count", "loose_limit", "run", "run_increment", "scene_data", "solve"]
@@ -301,17 +300,6 @@ def ramp(d, stage: str, n: int, at) -> None:
 MAX_LOOSE_ROUNDS = 5
 """Most times a stage is solved again without the loose blocks found (each time a whole
 stage): a rock mass that keeps ravelling after that is reported as a mechanism."""
-
-
-def loose_limit(scene) -> float:
-    """The largest group of blocks falling free that a stage removes and goes on (m3 per m
-    of tunnel, the group's area): ``solver.max_loose_volume``, else a small block of the
-    rock mass, :func:`jaxdem.rockmass.small_block_area` (0.1 x the smallest joint-set
-    spacing squared, the default of ``domain.min_block_area``; 0 without joint sets, where
-    a falling block is the answer, a key block, unless the scene says otherwise)."""
-    if scene.solver.max_loose_volume is not None:
-        return float(scene.solver.max_loose_volume)
-    return small_block_area(scene)
 
 
 def _release_groups(excavations: dict, layout, N: int) -> list:

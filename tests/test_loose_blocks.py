@@ -262,10 +262,13 @@ def test_a_block_that_falls_free_is_removed():
     data["solver"]["loose_blocks"] = "stop"
     stop = jaxdem.solve(jaxdem.load_scene(data))
     assert stop.status == "mechanism" and stop.moving_blocks == [2] and stop.loose_blocks == []
+    # Not removed, and no larger than max_loose_volume (1.0): said to be small.
+    assert [w for w in stop.warnings if "mechanism is small: blocks 2, 0.5 m3/m" in w]
     small = _prop_scene(0.0)
     small["solver"]["max_loose_volume"] = 0.4  # the block (0.5 m3/m) is too large
     big = jaxdem.solve(jaxdem.load_scene(small))
     assert big.status == "mechanism" and big.moving_blocks == [2] and big.loose_blocks == []
+    assert not [w for w in big.warnings if "mechanism is small" in w]
 
 
 def test_a_block_that_slides_along_a_joint_is_not_removed():
@@ -274,6 +277,24 @@ def test_a_block_that_slides_along_a_joint_is_not_removed():
     r = jaxdem.solve(jaxdem.load_scene(_prop_scene(30.0)))
     assert r.status == "mechanism" and not r.stable
     assert r.moving_blocks == [2] and r.loose_blocks == []
+    # A block of 0.5 m3/m (1 m x 0.5 m), max_loose_volume 1.0: a small mechanism, said so.
+    small = [w for w in r.warnings if "mechanism is small" in w]
+    assert len(small) == 1 and "blocks 2, 0.5 m3/m in all (solver.max_loose_volume: 1)" in small[0]
+
+
+def test_a_mechanism_is_small_where_its_blocks_together_are_no_larger_than_the_limit():
+    """:func:`jaxdem.results.small_mechanism` on hand-made blocks: the sum of the moving
+    blocks' areas against the limit, the largest block's centroid named."""
+    from jaxdem.results import small_mechanism
+
+    area = np.array([0.035, 0.013, 2.0, 0.5])
+    centroids = np.array([[-6.1, -1.0], [-6.0, -0.9], [0.0, 0.0], [3.0, 1.0]])
+    said = small_mechanism([0, 1], area, 1.6, centroids)
+    assert said and "blocks 0, 1, 0.048 m3/m in all" in said and "(-6.1, -1)" in said
+    assert small_mechanism([0, 1], area, 0.04, centroids) is None  # 0.048 > 0.04
+    assert small_mechanism([0, 1, 2], area, 1.6, centroids) is None  # with a 2 m2 block
+    assert small_mechanism([0, 1], area, 0.0, centroids) is None  # no limit: no warning
+    assert small_mechanism([], area, 1.6, centroids) is None
 
 
 @pytest.mark.parametrize("field, value", [("loose_blocks", "drop"),
