@@ -1,6 +1,7 @@
 """Loose blocks: small joint-bounded blocks bonded at generation (``domain.min_block_area``)
 and small blocks that fall free in a stage removed, the stage solved again without them
-(``solver.loose_blocks``, ``solver.max_loose_volume``)."""
+(``solver.loose_blocks``, ``solver.max_loose_volume``); a mechanism of small blocks that
+were not removed is said to be small (``jaxdem.results.small_mechanism``)."""
 
 from __future__ import annotations
 
