@@ -51,7 +51,7 @@ from typing import Any
 import numpy as np
 
 from jaxdem.config import float64
-from jaxdem.results import jsonable, write_json
+from jaxdem.results import SMALL_MECHANISM, jsonable, write_json
 from jaxdem.scene import SceneError
 
 #: Outcome labels of a trial (from :class:`jaxdem.core.status.Status`).
@@ -299,6 +299,12 @@ def write_outputs(fos: FactorOfSafety, scene, out_dir: str | Path) -> list[Path]
             fos.mechanism["note"] = (f"the single solve at this factor ended as "
                                      f"{result.status}, not a mechanism: the figure shows "
                                      "where it stopped")
+        else:
+            # A mechanism of small pieces (a sliver of a mesh at an opening) sets F as any
+            # mechanism does: say so (jaxdem.results.small_mechanism).
+            small = [w for w in result.warnings if w.startswith(SMALL_MECHANISM)]
+            if small:
+                fos.mechanism["note"] = small[0]
         written.append(figure)
     written.insert(0, write_json(fos.to_dict(), out / "fos.json"))
     written.append(plot_trials(fos, out / "fos.png"))

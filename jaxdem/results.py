@@ -504,6 +504,10 @@ def loose_limit(scene) -> float:
     return small_block_area(scene)
 
 
+#: How the warning of :func:`small_mechanism` begins.
+SMALL_MECHANISM = "unstable, but the mechanism is small"
+
+
 def small_mechanism(moving, area, limit: float, centroids) -> str | None:
     """The warning for a mechanism of small pieces, else None.
 
@@ -527,7 +531,7 @@ def small_mechanism(moving, area, limit: float, centroids) -> str | None:
     k = int(ids[np.argmax(area[ids])])
     names = ", ".join(str(int(i)) for i in ids[:10]) + (", ..." if len(ids) > 10 else "")
     x, y = centroids[k]
-    return (f"unstable, but the mechanism is small: blocks {names}, {total:.3g} m3/m in all "
+    return (f"{SMALL_MECHANISM}: blocks {names}, {total:.3g} m3/m in all "
             f"(solver.max_loose_volume: {limit:.3g}), the largest at ({x:.3g}, {y:.3g}): "
             f"pieces that work loose (at an opening: ravelling, or slivers cut where mesh "
             f"lines, joints and its outline cross close together), not a collapse of the "

@@ -305,6 +305,26 @@ def test_fos_json_says_when_the_single_solve_is_no_mechanism(tmp_path, fake_batc
     assert "equilibrium" not in mechanism["note"]
 
 
+def test_fos_json_says_when_the_mechanism_at_the_unstable_end_is_small(tmp_path, fake_batch):
+    """The single solve drawn above F = tan 30 / tan 25 = 1.238 slides the 1 m2 block: a
+    mechanism. With solver.max_loose_volume 2 m3/m it is small, and fos.json's mechanism
+    says so (jaxdem.results.small_mechanism); with the default (0: explicit blocks, no
+    joint sets) it says nothing."""
+    fake_batch(lambda f: "converged" if f <= 1.25 else "mechanism")
+    for extra, small in (("max_loose_volume = 2.0\n", True), ("", False)):
+        scene = tmp_path / "incline.toml"
+        scene.write_text(_INCLINE_TOML.replace("load_steps = 1\n", "load_steps = 1\n" + extra))
+        out = tmp_path / f"out{int(small)}"
+        main(["fos", str(scene), "--out", str(out)])
+        mechanism = json.loads((out / "fos.json").read_text())["mechanism"]
+        assert mechanism["status"] == "mechanism" and mechanism["moving_blocks"] == [1]
+        if small:
+            assert mechanism["note"].startswith("unstable, but the mechanism is small: "
+                                                "blocks 1, 1 m3/m in all")
+        else:
+            assert "note" not in mechanism
+
+
 @pytest.mark.parametrize("argv, field", [
     (["--trials", "1"], "--trials"),
     (["--tolerance", "0"], "--tolerance"),
