@@ -89,7 +89,8 @@ class FactorOfSafety:
       options: intact, tensile, trials, rtol, start bracket, limits, max_rounds.
       timing: build_s, compile_s, solve_s (summed over rounds), total_s (s).
       mechanism: filled in by :func:`write_outputs`: the single solve at the
-        unstable end of the bracket (factor, status, moving blocks, figure).
+        unstable end of the bracket (factor, status, moving blocks, figure, message; a
+        ``note`` where it found no mechanism, or a small one).
     """
 
     factor_of_safety: float | None
