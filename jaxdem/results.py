@@ -35,7 +35,8 @@ class Result:
     Attributes:
       scene: scene name.
       converged: every increment reached equilibrium within the tolerance.
-      stable: no mechanism was found (no block travelled ``max_displacement``).
+      stable: no mechanism was found (no block travelled ``max_displacement``, or where
+        the scene leaves it out its own size, in an increment).
       status: a :class:`Status`, a ``str`` enumeration equal to its label:
         ``"converged"``, ``"mechanism"``, ``"iteration_limit"``, ``"capacity_overflow"``,
         ``"non_finite"``, ``"overlap"``, ``"law_violation"`` or ``"imbalance"`` (the
@@ -462,16 +463,18 @@ def moving_blocks(travel, max_displacement: float) -> list[int]:
 
 
 #: A mechanism whose moving blocks have each moved, net, less than this share of
-#: ``solver.max_displacement`` went back and forth: their path passed the limit, their
+#: their travel limit went back and forth: their path passed the limit, their
 #: places did not (:func:`back_and_forth`).
 BACK_AND_FORTH = 0.25
 
 
-def back_and_forth(moving, u, rot, radius, max_displacement: float) -> str | None:
+def back_and_forth(moving, u, rot, radius, limit) -> str | None:
     """The warning for a mechanism that is a path, not a collapse, else None.
 
-    A mechanism is found where a block's path in one increment passes
-    ``max_displacement`` (``moving``: their ids, :func:`moving_blocks`). A block that
+    A mechanism is found where a block's path in one increment passes its travel limit
+    (``limit``: m, a scalar or (n,), ``Model.travel_limit``: ``solver.max_displacement``,
+    or by default each block's size; ``moving``: their ids, :func:`moving_blocks`). A
+    block that
     falls or slides is as far from where it was, less the turns of its course; one whose
     contacts chatter in the iteration goes back and forth, and its path can pass the
     limit where it has moved centimetres. Net movement is measured as the path is
@@ -484,12 +487,13 @@ def back_and_forth(moving, u, rot, radius, max_displacement: float) -> str | Non
         return None
     ids = np.asarray(moving)
     net = np.hypot(u[ids, 0], u[ids, 1]) + np.abs(rot[ids]) * radius[ids]
-    if net.max() >= BACK_AND_FORTH * max_displacement:
+    lim = np.broadcast_to(np.asarray(limit, float), np.shape(radius))[ids]
+    if np.any(net >= BACK_AND_FORTH * lim):
         return None
-    k = int(np.argmax(net))
+    k = int(np.argmax(net / lim))
     return (f"unstable by path alone: the moving blocks went back and forth, the furthest "
             f"(block {int(ids[k])}) {1e3 * net[k]:.3g} mm from where it was for a path over "
-            f"{max_displacement:.3g} m; a chatter of the iteration, not a collapse that "
+            f"{lim[k]:.3g} m; a chatter of the iteration, not a collapse that "
             f"shows: review (README, \"Known limits\")")
 
 
@@ -631,6 +635,7 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
     status = Status.of(info.status)
     travel = np.asarray(info.travel)[:nr]
     max_disp = float(model.max_displacement)
+    limit = np.asarray(model.travel_limit, float)
     last = records[-1]
     overlap, overlap_rel = block_overlap(model, state, nr + len(layout.walls))
     if status == Status.CONVERGED and overlap_rel > OVERLAP_TOL:
@@ -651,8 +656,13 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
         held = (f" Its load step was cut {cut} time{'s' if cut > 1 else ''}: the last "
                 f"equilibrium at load factor {(k - 1) / n:.4g}, none found at {k / n:.4g}.")
     if status == Status.MECHANISM:
+        # Which block passed its limit: the scene's max_displacement, or its own size.
+        first = int(np.argmax(travel / limit[:nr]))
+        past = (f"travel over {max_disp:.3g} m" if limit[first] >= max_disp
+                else f"block {first} travelled over its own limit, {limit[first]:.3g} m (its "
+                f"size, at least a fifth of the median block's),")
         message = (f"{status.message} Moving blocks: {', '.join(map(str, moving))} "
-                   f"(travel over {max_disp:.3g} m in {where}).{held}")
+                   f"({past} in {where}).{held}")
     elif converged:
         shortened = "".join(f"; the load step of stage {name} cut {m} time{'s' if m > 1 else ''}"
                             for name, m in cuts_in.items())
@@ -747,7 +757,7 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
             f"{lead} joint slip of {1e3 * r['slip']:.0f} mm "
             f"in one increment (load step {r['step']} of stage {r['stage']}) at blocks {pair}: "
             f"more than {LARGE_SLIP:.0%} of the block's size; review")
-    chatter = back_and_forth(moving, u, rot, np.asarray(model.radius), max_disp)
+    chatter = back_and_forth(moving, u, rot, np.asarray(model.radius), limit)
     if chatter:
         warnings.append(chatter)
     small = small_mechanism(moving, np.asarray(model.area)[:nr], loose_limit(scene),

@@ -424,6 +424,31 @@ def test_free_falling_block_is_reported_at_once(dtype):
     assert_matches_float64(d, dtype, r)
 
 
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_a_small_block_is_a_mechanism_once_it_has_fallen_its_own_size(dtype):
+    """Two 2 m blocks at rest on a fixed base and a 0.5 m block with nothing under it:
+    the median block size L is 2 m, but where the scene leaves max_displacement out each
+    block's limit is its own size (between L / 5 and L), so the small block is a
+    mechanism once it has fallen 0.5 m (sub-steps of at most a quarter of its 0.35 m
+    radius), not 2 m; given, max_displacement is every block's limit (it falls 2 m)."""
+    blocks = [(rect(-1, -1, 8, 1), True), (rect(0, 0, 2, 2), False),
+              (rect(4, 0, 2, 2), False), (rect(10, 5, 0.5, 0.5), False)]
+    d = blocks_scene("a small block falls", blocks)
+    r = solve(d, dtype)
+    assert_sane(r)
+    assert r.status == "mechanism" and r.moving_blocks == [3]
+    assert "block 3 travelled over its own limit, 0.5 m" in r.message
+    ux, uy, rot = r.blocks[3]["u"]
+    assert -0.5 - 0.25 * math.hypot(0.25, 0.25) <= uy < -0.5 and ux == 0.0 and rot == 0.0
+    for b in r.blocks[1:3]:  # the large blocks rest on the base
+        assert np.abs(b["u"][:2]).max() < 1e-4
+    assert_matches_float64(d, dtype, r)
+    given = solve(blocks_scene("a small block falls", blocks, max_displacement=2.0), dtype)
+    assert given.status == "mechanism" and given.moving_blocks == [3]
+    assert "travel over 2 m" in given.message
+    assert given.blocks[3]["u"][1] < -2.0
+
+
 # The simplest draw of tests/test_properties.py that ended at the iteration limit: a 6 m
 # square of soft rock (no cohesion on intact cuts, the material default) between roller
 # walls on a fixed base, one joint segment across the middle; the rock-mass generation

@@ -19,7 +19,8 @@ installed bolts) and looks for static equilibrium with large displacements:
     spring forces and states.
   until a sub-step converges (every free block's |R| <= tol times its own
   force scale, with the springs' forces of the law) with a negligible du, or a block has
-  travelled ``max_displacement`` (mechanism).
+  travelled its ``travel_limit`` (mechanism: ``max_displacement``, or by default its own
+  size).
 
 Owns :func:`increment` and :func:`increment_tangent` (jitted), the loop of
 sub-steps :func:`substeps_to_equilibrium` that sets the :class:`jaxdem.core.status.Status` of
@@ -197,7 +198,7 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
             [overflow, ~newton.finite, done & (balance.overlap_rel > OVERLAP_TOL),
              done & (balance.excess > STRENGTH_TOL),
              done & (global_imbalance_jax(balance) > IMBALANCE_FACTOR * model.tol), done,
-             jnp.max(travel) > model.max_displacement,
+             jnp.any(travel > model.travel_limit),
              (stuck >= 3) | (substeps >= model.max_substeps)],
             [s.code for s in (Status.CAPACITY_OVERFLOW, Status.NON_FINITE, Status.OVERLAP,
                               Status.LAW_VIOLATION, Status.IMBALANCE, Status.CONVERGED,

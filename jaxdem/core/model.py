@@ -17,7 +17,10 @@ Choices made here (documented for users in the README):
 - Scales: L = median size sqrt(area) of the free blocks. Detection margin 2 * step_length;
   step_length defaults to L / 20; touch tolerance 1e-6 L (1e-4 L in float32);
   max_displacement defaults to L (a block that moves its own size in one
-  increment without finding equilibrium is falling or sliding away).
+  increment without finding equilibrium is falling or sliding away); where the
+  scene leaves it out, each block's own limit is its size sqrt(area), between
+  ``TRAVEL_FLOOR`` x L and L (a sliver at an opening that works loose is found when
+  it has moved its own size, not L).
 """
 
 from __future__ import annotations
@@ -53,6 +56,13 @@ BOND_PENALTY = 100.0
 
 The cells carry the rock's elasticity; the bond only keeps neighbours together,
 and its compliance (about 1 / BOND_PENALTY of a cell's) is the error it adds."""
+#: The least travel limit of a block, where the scene leaves ``solver.max_displacement``
+#: out, as a share of the median block size L: a block's own limit is its size, but a
+#: sliver is not a mechanism before it has moved a fifth of L (by then a piece that falls
+#: into an opening is clear of the rock and is removed as a loose block; at a tenth, the
+#: 0.004 m2 piece of tests/test_loose_blocks.py's tunnel was still sliding on its
+#: neighbour, and its stage stopped in a mechanism).
+TRAVEL_FLOOR = 0.2
 
 
 @dataclasses.dataclass
@@ -218,6 +228,10 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
 
     step_length = s.step_length if s.step_length is not None else L / 20.0
     max_disp = s.max_displacement if s.max_displacement is not None else L
+    # Each block's travel limit (a mechanism where one passes it): the scene's
+    # max_displacement, else the block's own size, between TRAVEL_FLOOR x L and L.
+    travel_limit = (np.clip(np.sqrt(areas), TRAVEL_FLOOR * L, L) if s.max_displacement is None
+                    else np.full(n_rock, max_disp))
     touch_tol = L * (1e-6 if dtype == np.float64 else 1e-4)
 
     # Rigid walls along fixed and roller boundaries.
@@ -359,6 +373,7 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
         tol=_put(max(s.tolerance, _tol_floor(dtype)), dtype),
         step_length=_put(step_length, dtype), margin=_put(margin, dtype),
         touch_tol=_put(touch_tol, dtype), max_displacement=_put(max_disp, dtype),
+        travel_limit=_put(np.concatenate([travel_limit, np.full(N - n_rock, max_disp)]), dtype),
         span_tol=_put(max(0.01 * L, touch_tol), dtype),
         cos_parallel=_put(math.cos(math.radians(2.0)), dtype),
         corner_share=_put(0.1, dtype),

@@ -44,8 +44,8 @@ def _pytree(data: list[str], meta: list[str]):
         "nv", "vmask", "free", "kind", "kn_inv", "ks_inv", "area", "radius", "f_ext",
         "edge_joint", "joint_kn", "joint_ks", "joint_c", "joint_t", "joint_tanphi",
         "big", "pseudo_mass", "f_ref", "tol", "step_length", "margin", "touch_tol",
-        "max_displacement", "span_tol", "cos_parallel", "corner_share", "max_iterations",
-        "max_substeps",
+        "max_displacement", "travel_limit", "span_tol", "cos_parallel", "corner_share",
+        "max_iterations", "max_substeps",
         "joint_intact", "gamma_w", "bolt_blocks", "bolt_offsets", "bolt_k", "bolt_cap",
         "bolt_comp", "bolt_pullout", "cell_D", "bond_penalty", "verts0", "centroid0",
     ],
@@ -87,8 +87,10 @@ class Model:
       tol: relative residual tolerance. step_length: m, largest travel of a
         block in one geometry sub-step. margin: m, contact detection distance
         (open springs within it may close during a sub-step). touch_tol: m,
-        gap under which faces are in contact. max_displacement: m, travel in
-        one increment beyond which a block is moving (a mechanism). span_tol: m,
+        gap under which faces are in contact. max_displacement: m, the scene's
+        travel in one increment beyond which a block is moving (a mechanism).
+        travel_limit: (N,) m, each block's own (max_displacement, or where the
+        scene leaves it out the block's size, :mod:`jaxdem.core.model`). span_tol: m,
         how far past the end of a face a vertex still bears on it (0.01 L).
       cos_parallel: faces closer than this cosine to anti-parallel are an
         edge-to-edge contact. corner_share: effective length of a
@@ -165,6 +167,7 @@ class Model:
     margin: jax.Array
     touch_tol: jax.Array
     max_displacement: jax.Array
+    travel_limit: jax.Array
     span_tol: jax.Array
     cos_parallel: jax.Array
     corner_share: jax.Array

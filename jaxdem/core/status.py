@@ -54,7 +54,8 @@ class Status(str, enum.Enum):
     :meth:`of` turns it back into the member. The members:
 
     - ``converged``: static equilibrium, admissible;
-    - ``mechanism``: blocks kept moving beyond ``solver.max_displacement`` (an answer);
+    - ``mechanism``: blocks kept moving beyond ``solver.max_displacement`` (where the
+      scene leaves it out, each block's own size) (an answer);
     - ``iteration_limit``: ``solver.max_iterations`` reached before equilibrium;
     - ``capacity_overflow``: the contact list overflowed (the driver grows it and repeats);
     - ``non_finite``: NaN or infinity appeared;
@@ -90,7 +91,7 @@ class Status(str, enum.Enum):
         return {
             Status.CONVERGED: "Static equilibrium found.",
             Status.MECHANISM: "No equilibrium: blocks kept moving beyond max_displacement "
-            "(a mechanism). The named blocks fall, slide or topple.",
+            "or their own size (a mechanism). The named blocks fall, slide or topple.",
             Status.ITERATION_LIMIT: "The iteration limit was reached before equilibrium. "
             "Try increasing solver.max_iterations or solver.load_steps.",
             Status.CAPACITY_OVERFLOW: "The contact list overflowed its capacity.",
