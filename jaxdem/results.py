@@ -23,6 +23,7 @@ import numpy as np
 
 from jaxdem import geometry
 from jaxdem.core.kinematics import bolt_geometry, rotate_vectors, strain_times
+from jaxdem.core.model import TRAVEL_FLOOR
 from jaxdem.core.state import OPEN, SLIP
 from jaxdem.core.status import IMBALANCE_FACTOR, LARGE_SLIP, OVERLAP_TOL, STRENGTH_TOL, Status
 from jaxdem.rockmass import small_block_area
@@ -474,10 +475,9 @@ def back_and_forth(moving, u, rot, radius, limit) -> str | None:
     A mechanism is found where a block's path in one increment passes its travel limit
     (``limit``: m, a scalar or (n,), ``Model.travel_limit``: ``solver.max_displacement``,
     or by default each block's size; ``moving``: their ids, :func:`moving_blocks`). A
-    block that
-    falls or slides is as far from where it was, less the turns of its course; one whose
-    contacts chatter in the iteration goes back and forth, and its path can pass the
-    limit where it has moved centimetres. Net movement is measured as the path is
+    block that falls or slides is as far from where it was, less the turns of its
+    course; one whose contacts chatter in the iteration goes back and forth, and its path
+    can pass the limit where it has moved centimetres. Net movement is measured as the path is
     (:func:`jaxdem.core.kinematics.block_travel`: a block that tumbles travels by its
     rotation too): |u| + |rotation| x radius (``u`` (n, 2) m and ``rot`` (n,) rad from
     where displacements are measured, ``radius`` (n,) each block's largest
@@ -660,7 +660,7 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
         first = int(np.argmax(travel / limit[:nr]))
         past = (f"travel over {max_disp:.3g} m" if limit[first] >= max_disp
                 else f"block {first} travelled over its own limit, {limit[first]:.3g} m (its "
-                f"size, at least a fifth of the median block's),")
+                f"size, at least {TRAVEL_FLOOR:g} x the median block's),")
         message = (f"{status.message} Moving blocks: {', '.join(map(str, moving))} "
                    f"({past} in {where}).{held}")
     elif converged:
