@@ -520,8 +520,8 @@ def small_mechanism(moving, area, limit: float, centroids) -> str | None:
     per m of tunnel: ``solver.max_loose_volume``, else its default, a small block of the
     rock mass; 0: no warning) they are pieces working loose, not a collapse: ravelling at
     an opening, or slivers of a mesh where its lines, a joint and an opening's outline
-    cross close together (seed example 3: two cut cells of 0.035 and 0.013 m2 at a
-    tunnel's wall turn over; 0.37 m2 in eight pieces without D). They were not removed
+    cross close together (seed example 3 at k0 = 1/3: a cut cell of 0.035 m2 at tunnel
+    a's wall turns over with D, one of 0.022 m2 without). They were not removed
     as loose blocks (``solver.loose_blocks`` removes only groups that fall free of the rock,
     and none where it is ``"stop"``).
     ``area`` (n,) each rock block's area (m2), ``centroids`` (n, 2) where they were (m).
