@@ -45,7 +45,7 @@ from jaxdem.core.loads import in_situ_preload, release_forces
 from jaxdem.core.state import Loads, grow_capacity
 from jaxdem.core.status import Status
 from jaxdem.differentiable import ParameterMap, monitor_readings
-from jaxdem.results import moving_blocks
+from jaxdem.results import is_small, loose_limit, mechanism_volume, moving_blocks
 from jaxdem.scene import SceneError, apply_overrides
 from jaxdem.solver import Data, increment_count, run, scene_data
 
@@ -68,6 +68,13 @@ class BatchResult:
       iterations: (S,) Newton iterations of each sample, summed over increments.
       moving_blocks: (S,) lists: where a sample found a mechanism, the blocks that kept
         moving (:func:`jaxdem.results.moving_blocks`, as ``Result.moving_blocks``); else [].
+      moving_volume: (S,) the moving blocks' area together (m3 per m of tunnel;
+        :func:`jaxdem.results.mechanism_volume`), 0.0 where a sample found no mechanism.
+      small_mechanism: (S,) bool, a sample's mechanism is small: its moving blocks
+        together no larger than ``solver.max_loose_volume`` or its default
+        (:func:`jaxdem.results.is_small`): pieces working loose, such as a block that a
+        single solve would remove as loose (a batch does not remove them), not a collapse
+        (docs/results.md, "A small mechanism").
       stopped: (S,) where a sample without an answer stopped: ``{"stage": name,
         "load_factor": f}``, the stage ("loading", "initial" or the file's stage name)
         and the fraction of its load at the increment that failed (as ``Result.stages``'
@@ -89,6 +96,15 @@ class BatchResult:
     timing: dict
     moving_blocks: list = dataclasses.field(default_factory=list)
     stopped: list = dataclasses.field(default_factory=list)
+    moving_volume: np.ndarray | None = None
+    small_mechanism: np.ndarray | None = None
+
+    def __post_init__(self):
+        S = len(self.status)
+        if self.moving_volume is None:
+            self.moving_volume = np.zeros(S)
+        if self.small_mechanism is None:
+            self.small_mechanism = np.zeros(S, bool)
 
 
 @float64
@@ -187,12 +203,16 @@ def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
     ok = status == Status.CONVERGED.code
     for v in out_mon.values():
         v[~ok] = np.nan
+    area = np.asarray(model.area)[:layout.n_rock]
+    volume = np.array([mechanism_volume(m, area) for m in moving])
+    small = np.array([is_small(m, area, loose_limit(scene)) for m in moving], bool)
     return BatchResult(
         params=params, theta=theta, monitors=out_mon,
         status=[Status.of(s).label for s in status], stable=status != Status.MECHANISM.code,
         converged=ok, iterations=iterations,
         timing=dict(build_s=build_s, compile_s=compile_s, solve_s=solve_s, chunk=size,
-                    devices=placed, workers=workers), moving_blocks=moving, stopped=stopped)
+                    devices=placed, workers=workers), moving_blocks=moving, stopped=stopped,
+        moving_volume=volume, small_mechanism=small)
 
 
 def _solve_chunk(scene, prepared, theta, rows, size: int, devices, quick: bool,

@@ -156,7 +156,9 @@ class GroundReaction:
       dropped_stages: the stages after the excavation's, left out.
       mechanism: the highest pressure whose level is a mechanism, or None: ``level``
         (index), ``pressure`` (kPa), ``moving_blocks`` (ids, from the batch's solve of that
-        level), ``status`` and ``message``.
+        level), ``volume`` (their area together, m3/m), ``small`` (no larger than
+        ``solver.max_loose_volume``: pieces working loose, not a collapse;
+        :attr:`jaxdem.batch.BatchResult.small_mechanism`), ``status`` and ``message``.
       undecided: levels that neither converged nor found a mechanism.
       support: the :class:`SupportLine`, or None.
       equilibrium: with a support: ``pressure`` p_eq (kPa), ``convergence`` u_eq (m),
@@ -523,7 +525,9 @@ def _mechanism(pressure, batch, name_blocks) -> dict | None:
         return None
     i = hits[0]
     out: dict[str, Any] = dict(level=i, pressure=float(pressure[i]), status=MECHANISM,
-                               moving_blocks=None, message="")
+                               moving_blocks=None, message="",
+                               volume=float(batch.moving_volume[i]),
+                               small=bool(batch.small_mechanism[i]))
     if name_blocks:
         moving = list(batch.moving_blocks[i])
         out.update(moving_blocks=moving, message=(
@@ -587,6 +591,10 @@ def _message(c: GroundReaction) -> str:
             more = len(m["moving_blocks"]) - 20
             text += f" (moving blocks {blocks}" + (f" and {more} more" if more > 0 else "") + ")"
         text += "."
+        if m.get("small"):
+            text += (f" It is small ({m['volume']:.3g} m3/m, no larger than "
+                     f"solver.max_loose_volume): pieces working loose at the opening, not a "
+                     f"collapse of the rock mass (a batch does not remove loose blocks).")
     else:
         text += " Every level is stable." if not c.undecided else ""
     if c.undecided:

@@ -607,7 +607,9 @@ def monte_carlo(scene, variables, limit: Limit, R: np.ndarray, samples: int, *,
     iteration limit (or non-finite) decide nothing: counted as ``undecided``.
 
     Returns:
-      ``samples``, ``failures``, ``decided``, ``undecided``, ``probability`` (failures /
+      ``samples``, ``failures``, ``small_mechanisms`` (failures that are mechanisms of
+      small pieces: :attr:`jaxdem.batch.BatchResult.small_mechanism`, counted in
+      ``failures``), ``decided``, ``undecided``, ``probability`` (failures /
       decided), ``ci95`` (95% Wilson score interval), ``cov`` (coefficient of variation
       of the estimate, sqrt((1 - p) / (p N))), ``seed``, ``solves``, ``timing``.
     """
@@ -635,6 +637,7 @@ def monte_carlo(scene, variables, limit: Limit, R: np.ndarray, samples: int, *,
     p, decided = share["p_unstable"], share["decided"]
     cov = math.sqrt((1 - p) / (p * decided)) if decided and p > 0 else float("inf")
     return dict(method="mc", samples=samples, seed=seed, failures=share["unstable"],
+                small_mechanisms=int(np.sum(mechanism & b.small_mechanism)),
                 decided=decided, undecided=share["undecided"], probability=p,
                 ci95=share["ci95"], cov=cov, solves=samples,
                 timing=dict(b.timing, total_s=time.perf_counter() - t0))
@@ -731,6 +734,10 @@ class Reliability:
             c = self.check
             text += (f" Monte Carlo, {c['samples']:,} solves: {c['probability']:.4g} "
                      f"(95% interval {c['ci95'][0]:.4g} to {c['ci95'][1]:.4g}).")
+            if c.get("small_mechanisms"):
+                text += (f" {c['small_mechanisms']} of its {c['failures']} failures are small "
+                         f"mechanisms (pieces working loose, no larger together than "
+                         f"solver.max_loose_volume).")
         for w in self.warnings:
             text += f" WARNING: {w}"
         return text

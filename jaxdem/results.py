@@ -512,6 +512,19 @@ def loose_limit(scene) -> float:
 SMALL_MECHANISM = "unstable, but the mechanism is small"
 
 
+def mechanism_volume(moving, area) -> float:
+    """The moving blocks' area together (m2, m3 per m of tunnel; 0.0 where none moves):
+    ``moving`` their ids, ``area`` (n,) each rock block's area (m2)."""
+    return float(np.sum(np.asarray(area)[np.asarray(moving, int)])) if len(moving) else 0.0
+
+
+def is_small(moving, area, limit: float) -> bool:
+    """Whether a mechanism (``moving``: its blocks' ids, ``area`` (n,) m2) is small: its
+    blocks together no larger than ``limit`` (m3/m: ``solver.max_loose_volume`` or its
+    default, :func:`loose_limit`; 0: none is). See :func:`small_mechanism`."""
+    return bool(len(moving)) and limit > 0.0 and mechanism_volume(moving, area) <= limit
+
+
 def small_mechanism(moving, area, limit: float, centroids) -> str | None:
     """The warning for a mechanism of small pieces, else None.
 
@@ -526,12 +539,10 @@ def small_mechanism(moving, area, limit: float, centroids) -> str | None:
     and none where it is ``"stop"``).
     ``area`` (n,) each rock block's area (m2), ``centroids`` (n, 2) where they were (m).
     """
-    if not moving or limit <= 0.0:
+    if not is_small(moving, area, limit):
         return None
     ids = np.asarray(moving)
-    total = float(np.sum(area[ids]))
-    if total > limit:
-        return None
+    total = mechanism_volume(moving, area)
     k = int(ids[np.argmax(area[ids])])
     names = ", ".join(str(int(i)) for i in ids[:10]) + (", ..." if len(ids) > 10 else "")
     x, y = centroids[k]

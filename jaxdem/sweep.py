@@ -36,7 +36,8 @@ import numpy as np
 from jaxdem.batch import BatchResult, solve_batch
 from jaxdem.config import float64
 from jaxdem.differentiable import NotSmooth
-from jaxdem.results import jsonable
+from jaxdem.geometry import signed_areas
+from jaxdem.results import SMALL_MECHANISM, jsonable, mechanism_volume
 from jaxdem.scene import SceneError, apply_overrides
 
 METHODS = ("grid", "lhs", "mc")
@@ -186,10 +187,11 @@ class SweepResult:
         at their base), ``swing`` (at_high - at_low) and ``quantity`` (what the
         values are: "|u|", a point monitor's displacement magnitude, or
         "convergence", a section's; m).
-      probability: ``unstable`` (mechanisms), ``decided`` (samples that ended
-        stable or in a mechanism), ``undecided`` (iteration limit or
-        non-finite), ``p_unstable`` = unstable / decided, and its 95% Wilson
-        score interval ``ci95``.
+      probability: ``unstable`` (mechanisms), ``small`` (those of them that are
+        small: pieces working loose, ``batch.small_mechanism``; counted in
+        ``unstable``), ``decided`` (samples that ended stable or in a mechanism),
+        ``undecided`` (iteration limit or non-finite), ``p_unstable`` = unstable /
+        decided, and its 95% Wilson score interval ``ci95``.
       mode: ``"batched"`` or ``"loop"`` (a parameter changes the geometry).
     """
 
@@ -205,7 +207,8 @@ class SweepResult:
         cols = ["sample"] + [v.path for v in self.variables]
         for name, v in self.batch.monitors.items():
             cols += [f"{name}.ux", f"{name}.uy"] if v.ndim == 2 else [name]
-        return cols + ["stable", "converged", "status", "stopped_stage", "stopped_load_factor"]
+        return cols + ["stable", "converged", "status", "stopped_stage", "stopped_load_factor",
+                       "moving_volume", "small_mechanism"]
 
     def rows(self) -> list[dict]:
         """One dict per sample, keyed by :meth:`columns` (the table of sweep.csv)."""
@@ -222,7 +225,9 @@ class SweepResult:
             stop = (b.stopped[i] if b.stopped else None) or {}
             row.update(stable=bool(b.stable[i]), converged=bool(b.converged[i]),
                        status=b.status[i], stopped_stage=stop.get("stage", ""),
-                       stopped_load_factor=stop.get("load_factor", float("nan")))
+                       stopped_load_factor=stop.get("load_factor", float("nan")),
+                       moving_volume=float(b.moving_volume[i]),
+                       small_mechanism=bool(b.small_mechanism[i]))
             out.append(row)
         return out
 
@@ -323,7 +328,8 @@ def solve_each(scene, params, theta, progress=None) -> BatchResult:
 
     S = theta.shape[0]
     monitors: dict = {}
-    status, stopped, iterations = [], [], np.zeros(S, int)
+    status, stopped, moving, iterations = [], [], [], np.zeros(S, int)
+    volume, small = np.zeros(S), np.zeros(S, bool)
     timing = dict(build_s=0.0, compile_s=0.0, solve_s=0.0, chunk=1, devices=1, workers=1)
     for i, row in enumerate(theta):
         res = solve(scene, set=dict(zip(params, (float(x) for x in row), strict=True)))
@@ -334,6 +340,11 @@ def solve_each(scene, params, theta, progress=None) -> BatchResult:
         stopped.append(None if res.converged else
                        dict(stage=last["name"], load_factor=last["load_factor"][-1]))
         iterations[i] = sum(sum(st["iterations"]) for st in res.stages)
+        moving.append(list(res.moving_blocks))
+        if res.moving_blocks:  # each sample's own blocks: a loop's parameter may cut them
+            area = np.abs(signed_areas(res.geometry["initial_vertices"]))
+            volume[i] = mechanism_volume(res.moving_blocks, area)
+            small[i] = any(w.startswith(SMALL_MECHANISM) for w in res.warnings)
         for name, m in res.monitors.items():
             value = m["displacement"] if "displacement" in m else m["convergence"]
             arr = monitors.setdefault(name, np.full((S,) + np.shape(value), np.nan))
@@ -345,23 +356,28 @@ def solve_each(scene, params, theta, progress=None) -> BatchResult:
     return BatchResult(params=list(params), theta=np.asarray(theta, float), monitors=monitors,
                        status=list(status), stable=status_arr != "mechanism",
                        converged=status_arr == "converged", iterations=iterations,
-                       timing=timing, stopped=stopped)
+                       timing=timing, moving_blocks=moving, stopped=stopped,
+                       moving_volume=volume, small_mechanism=small)
 
 
 def probability_of_instability(batch: BatchResult, z: float = 1.959964) -> dict:
-    """Share of mechanisms among the samples that found an answer, with its 95% Wilson interval."""
+    """Share of mechanisms among the samples that found an answer, with its 95% Wilson
+    interval, and how many of the mechanisms are small (``small``: see
+    :attr:`SweepResult.probability`)."""
     unstable = int(np.sum(~batch.stable))
+    flags = getattr(batch, "small_mechanism", None)  # any object with stable and converged
+    small = 0 if flags is None else int(np.sum(~batch.stable & flags))
     decided = int(np.sum(batch.converged | ~batch.stable))
     undecided = int(len(batch.stable) - decided)
     if decided == 0:
-        return dict(unstable=unstable, decided=0, undecided=undecided, p_unstable=float("nan"),
-                    ci95=[float("nan"), float("nan")])
+        return dict(unstable=unstable, small=small, decided=0, undecided=undecided,
+                    p_unstable=float("nan"), ci95=[float("nan"), float("nan")])
     p = unstable / decided
     denom = 1 + z * z / decided
     centre = (p + z * z / (2 * decided)) / denom
     half = z * math.sqrt(p * (1 - p) / decided + z * z / (4 * decided * decided)) / denom
-    return dict(unstable=unstable, decided=decided, undecided=undecided, p_unstable=p,
-                ci95=[max(0.0, centre - half), min(1.0, centre + half)])
+    return dict(unstable=unstable, small=small, decided=decided, undecided=undecided,
+                p_unstable=p, ci95=[max(0.0, centre - half), min(1.0, centre + half)])
 
 
 def _scalar(v: np.ndarray) -> np.ndarray:
@@ -390,7 +406,8 @@ def _take(batch: BatchResult, rows: slice) -> BatchResult:
         batch, theta=batch.theta[rows], monitors={k: v[rows] for k, v in batch.monitors.items()},
         status=batch.status[rows], stable=batch.stable[rows], converged=batch.converged[rows],
         iterations=batch.iterations[rows], moving_blocks=batch.moving_blocks[rows],
-        stopped=batch.stopped[rows])
+        stopped=batch.stopped[rows], moving_volume=batch.moving_volume[rows],
+        small_mechanism=batch.small_mechanism[rows])
 
 
 def check_values(scene, variables, theta) -> None:

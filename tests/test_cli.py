@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -539,16 +540,18 @@ def test_sweep_to_csv_without_a_path_returns_the_text(tmp_path):
                         monitors={"top": np.array([[0.0, -1e-3], [0.0, -5e-4]])},
                         status=["converged", "mechanism"], stable=np.array([True, False]),
                         converged=np.array([True, False]), iterations=np.array([3, 9]),
-                        timing={}, stopped=[None, {"stage": "loading", "load_factor": 0.5}])
+                        timing={}, stopped=[None, {"stage": "loading", "load_factor": 0.5}],
+                        moving_volume=np.array([0.0, 0.02]),
+                        small_mechanism=np.array([False, True]))
     result = SweepResult(variables=[Variable.parse("joints.j.kn=1e6:2e6")], method="grid",
                          seed=0, batch=batch, tornado={}, probability={}, mode="batched")
     text = result.to_csv()
     assert isinstance(text, str)
     assert text.splitlines() == [
         "sample,joints.j.kn,top.ux,top.uy,stable,converged,status,stopped_stage,"
-        "stopped_load_factor",
-        "0,1000000.0,0.0,-0.001,True,True,converged,,nan",
-        "1,2000000.0,0.0,-0.0005,False,False,mechanism,loading,0.5",
+        "stopped_load_factor,moving_volume,small_mechanism",
+        "0,1000000.0,0.0,-0.001,True,True,converged,,nan,0.0,False",
+        "1,2000000.0,0.0,-0.0005,False,False,mechanism,loading,0.5,0.02,True",
     ]
     path = result.to_csv(tmp_path / "sweep.csv")
     assert path.read_bytes().decode() == text  # the same CSV (csv.writer line ends)
@@ -582,6 +585,15 @@ def test_the_sweep_summary_says_where_the_samples_without_an_answer_stopped():
     assert ("1 without an answer stopped in stage loading at load factor 1 "
             "(sweep.csv: stopped_stage, stopped_load_factor)") in lines
     assert not any("0.25" in line for line in lines)
+    assert not any("small" in line for line in lines)
+    # The mechanism's blocks together 0.02 m3/m, no larger than max_loose_volume: said so.
+    small = dataclasses.replace(batch, moving_volume=np.array([0.0, 0.0, 0.0, 0.02, 0.0]),
+                                small_mechanism=np.array([False, False, False, True, False]))
+    result = dataclasses.replace(result, batch=small,
+                                 probability=probability_of_instability(small))
+    assert result.probability["small"] == 1
+    assert ("1 of the 1 mechanisms are small: their moving blocks together no larger than "
+            "solver.max_loose_volume") in sweep_summary(result)
 
 
 # --------------------------------------------------------------------------- --view

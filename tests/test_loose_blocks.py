@@ -313,3 +313,27 @@ def test_bad_solver_values_are_refused_with_the_field_named(tmp_path, field, val
                            "--out", str(tmp_path / "out")],
                           cwd=ROOT, capture_output=True, text=True)
     assert proc.returncode == 2 and f"solver.{field}" in proc.stderr + proc.stdout
+
+
+@pytest.mark.parametrize("limit, small", [(1.0, True), (0.4, False)])
+def test_a_batch_says_which_of_its_mechanisms_are_small(limit, small):
+    """The toe-prop block (1 m x 0.5 m: 0.5 m3/m) at joint friction 20 and 40 degrees on
+    its 30-degree base, batched and one solve after another (a sweep's loop): at 20 it
+    slides (tan 20 < tan 30), a mechanism of 0.5 m3/m, small where max_loose_volume is
+    1.0, not at 0.4; at 40 it holds (no mechanism, volume 0). The sweep's probability
+    counts the small one apart, and the GRC-style flag is the same in both paths."""
+    from jaxdem.batch import solve_batch
+    from jaxdem.sweep import probability_of_instability, solve_each
+
+    data = _prop_scene(30.0)
+    data["solver"]["max_loose_volume"] = limit
+    scene = jaxdem.load_scene(data)
+    theta = np.array([[20.0], [40.0]])
+    for b in (solve_batch(scene, ["joints.j.friction_deg"], theta),
+              solve_each(scene, ["joints.j.friction_deg"], theta)):
+        assert b.status == ["mechanism", "converged"]
+        assert b.moving_blocks[0] == [2] and b.moving_blocks[1] == []
+        assert b.moving_volume == pytest.approx([0.5, 0.0], rel=1e-12)
+        assert list(b.small_mechanism) == [small, False]
+        p = probability_of_instability(b)
+        assert (p["unstable"], p["small"]) == (1, int(small))

@@ -99,15 +99,20 @@ def test_the_table_says_where_each_sample_without_an_answer_stopped():
     """Friction 25 degrees on the 30 degree incline slides at any share of the weight: in
     single solves (load steps vary, mode "loop") the sample with one load step stops at
     load factor 1, the one with two at 1/2, both in the loading stage, as in the batched
-    sweeps (tests/test_batch.py); the CSV has it in its last two columns."""
+    sweeps (tests/test_batch.py); the CSV has it in its columns stopped_stage and
+    stopped_load_factor, then the mechanism's volume (the 1 m x 1 m block: 1.0 m3/m) and
+    whether it is small (no: a scene without joint sets has no default
+    max_loose_volume)."""
     scene = parse_scene(block_on_incline(ALPHA, 25.0))
     res = sweep(scene, ["solver.load_steps=1:2"], 2, tornado=False)
     assert res.mode == "loop" and res.batch.status == ["mechanism", "mechanism"]
     rows = res.rows()
     assert [(r["stopped_stage"], r["stopped_load_factor"]) for r in rows] == [
         ("loading", 1.0), ("loading", 0.5)]
-    assert res.columns()[-2:] == ["stopped_stage", "stopped_load_factor"]
-    assert res.to_csv().splitlines()[2].endswith(",mechanism,loading,0.5")
+    assert res.columns()[-4:] == ["stopped_stage", "stopped_load_factor", "moving_volume",
+                                  "small_mechanism"]
+    assert res.batch.moving_volume == pytest.approx([1.0, 1.0], rel=1e-12)
+    assert res.to_csv().splitlines()[2].endswith(",mechanism,loading,0.5,1.0,False")
 
 
 def test_sampling_methods():

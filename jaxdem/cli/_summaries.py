@@ -180,6 +180,11 @@ def sweep_summary(result: Any) -> str:
         lo, hi = pr["ci95"]
         lines.append(f"probability of instability {pr['p_unstable']:.3f} "
                      f"(95% interval {lo:.3f} to {hi:.3f}, {pr['decided']} samples)")
+    if pr.get("small"):
+        lines.append(f"{pr['small']} of the {pr['unstable']} mechanisms are small: their moving "
+                     f"blocks together no larger than solver.max_loose_volume, pieces working "
+                     f"loose rather than a collapse (a batch does not remove loose blocks; "
+                     f"sweep.csv: moving_volume, small_mechanism)")
     for name, bars in result.tornado.items():
         top = ", ".join(f"{bar['path']} {bar['swing'] * 1e3:+.3g} mm" for bar in bars[:3])
         lines.append(f"tornado {name}: {top}")

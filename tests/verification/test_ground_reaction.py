@@ -149,7 +149,11 @@ def test_grc_command_writes_the_curve_and_names_the_falling_wedge(tmp_path, caps
     wedge = result.geometry["initial_vertices"][m["moving_blocks"][0]]
     assert signed_area(wedge) == pytest.approx(2.0, rel=1e-9)
     np.testing.assert_allclose(centroid(wedge), [0.0, 1.0 + 2.0 / 3.0], atol=1e-9)
-    assert "mechanism first appears at 0 kPa" in capsys.readouterr().out
+    # The wedge's area, 2 m3/m (half its 2 m base times its 2 m height); not small: the
+    # scene has no joint sets, so no default max_loose_volume.
+    assert m["volume"] == pytest.approx(2.0, rel=1e-9) and m["small"] is False
+    said = capsys.readouterr().out
+    assert "mechanism first appears at 0 kPa" in said and "It is small" not in said
     # The support line meets the curve above the mechanism, between the levels at 225
     # and 113 kPa, on both lines.
     eq = data["equilibrium"]
@@ -178,6 +182,18 @@ def test_bad_input_is_refused_naming_the_field(tmp_path, capsys, args, field):
     err = capsys.readouterr().err
     assert err.startswith(f"error: {field}") and "Traceback" not in err
     assert not out.exists()                              # refused before any computation
+
+
+def test_a_mechanism_no_larger_than_max_loose_volume_is_said_to_be_small():
+    """The roof wedge (2 m3/m) with ``solver.max_loose_volume`` 2.5: the same mechanism at
+    p = 0, now said to be small (pieces working loose, not a collapse)."""
+    data = roof_wedge()
+    data["solver"]["max_loose_volume"] = 2.5
+    curve = jaxdem.ground_reaction(parse_scene(data), "opening", levels=2, monitor="roof")
+    m = curve.mechanism
+    assert curve.status == ["converged", "mechanism"] and m["pressure"] == 0.0
+    assert m["volume"] == pytest.approx(2.0, rel=1e-9) and m["small"] is True
+    assert "It is small (2 m3/m, no larger than solver.max_loose_volume)" in curve.message
 
 
 def test_bad_input_is_refused_by_the_python_interface():

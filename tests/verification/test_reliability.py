@@ -62,6 +62,9 @@ def test_incline_monte_carlo_fails_exactly_where_friction_is_below_the_slope(inc
     c = incline.check
     z = np.random.default_rng(10).standard_normal((96, 1))
     assert c["failures"] == int(np.sum(30.0 + 3.0 * z < 25.0)) and c["undecided"] == 0
+    # The sliding block is the whole scene's free rock, and a scene without joint sets has
+    # no default max_loose_volume: none of the failures is a small mechanism.
+    assert c["small_mechanisms"] == 0
     assert c["ci95"][0] <= incline.probability <= c["ci95"][1]
 
 
