@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdem import geometry
+from jaxdem.core.increment import group_limits
 from jaxdem.core.kinematics import bolt_geometry, rotate_vectors, strain_times
 from jaxdem.core.model import TRAVEL_FLOOR
 from jaxdem.core.state import OPEN, SLIP
@@ -463,6 +464,9 @@ def moving_blocks(travel, max_displacement: float) -> list[int]:
     return [int(i) for i in np.nonzero(np.asarray(travel) > 0.1 * max_displacement)[0]]
 
 
+_group_limits = jax.jit(group_limits)
+
+
 #: A mechanism whose moving blocks have each moved, net, less than this share of
 #: their travel limit went back and forth: their path passed the limit, their
 #: places did not (:func:`back_and_forth`).
@@ -473,8 +477,9 @@ def back_and_forth(moving, u, rot, radius, limit) -> str | None:
     """The warning for a mechanism that is a path, not a collapse, else None.
 
     A mechanism is found where a block's path in one increment passes its travel limit
-    (``limit``: m, a scalar or (n,), ``Model.travel_limit``: ``solver.max_displacement``,
-    or by default each block's size; ``moving``: their ids, :func:`moving_blocks`). A
+    (``limit``: m, a scalar or (n,): ``solver.max_displacement``, or by default each
+    block's size, or its group's where blocks moved together,
+    :func:`jaxdem.core.increment.group_limits`; ``moving``: their ids, :func:`moving_blocks`). A
     block that falls or slides is as far from where it was, less the turns of its
     course; one whose contacts chatter in the iteration goes back and forth, and its path
     can pass the limit where it has moved centimetres. Net movement is measured as the path is
@@ -647,6 +652,10 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
     travel = np.asarray(info.travel)[:nr]
     max_disp = float(model.max_displacement)
     limit = np.asarray(model.travel_limit, float)
+    group = np.arange(limit.shape[0])
+    if status == Status.MECHANISM:
+        # Blocks that moved together had their group's limit (jaxdem.core.increment).
+        limit, group = (np.asarray(x) for x in _group_limits(model, info.snapshot, info.travel))
     last = records[-1]
     overlap, overlap_rel = block_overlap(model, state, nr + len(layout.walls))
     if status == Status.CONVERGED and overlap_rel > OVERLAP_TOL:
@@ -669,9 +678,18 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
     if status == Status.MECHANISM:
         # Which block passed its limit: the scene's max_displacement, or its own size.
         first = int(np.argmax(travel / limit[:nr]))
-        past = (f"travel over {max_disp:.3g} m" if limit[first] >= max_disp
-                else f"block {first} travelled over its own limit, {limit[first]:.3g} m (its "
-                f"size, at least {TRAVEL_FLOOR:g} x the median block's),")
+        together = np.flatnonzero(group[:nr] == group[first])
+        if limit[first] >= max_disp:
+            past = f"travel over {max_disp:.3g} m"
+        elif len(together) > 1:
+            names = ", ".join(str(int(i)) for i in together[:10])
+            past = (f"blocks {names}{', ...' if len(together) > 10 else ''} moved together "
+                    f"and block {first} travelled over their limit, {limit[first]:.3g} m (the "
+                    f"size of their {float(np.sum(np.asarray(model.area)[together])):.3g} "
+                    f"m2 together, at least {TRAVEL_FLOOR:g} x the median block's),")
+        else:
+            past = (f"block {first} travelled over its own limit, {limit[first]:.3g} m (its "
+                    f"size, at least {TRAVEL_FLOOR:g} x the median block's),")
         message = (f"{status.message} Moving blocks: {', '.join(map(str, moving))} "
                    f"({past} in {where}).{held}")
     elif converged:

@@ -449,6 +449,37 @@ def test_a_small_block_is_a_mechanism_once_it_has_fallen_its_own_size(dtype):
     assert given.blocks[3]["u"][1] < -2.0
 
 
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_blocks_that_fall_together_share_the_limit_of_their_group(dtype):
+    """Two 0.5 m blocks side by side with nothing under them, among three 2 m blocks at
+    rest (L = 2 m): each one's own limit is 0.5 m, but they fall together (in contact
+    along their common side), so their limit is the size of the pair, sqrt(2 x 0.25) =
+    0.707 m: a mechanism once they have fallen that far, both named. With a fixed ledge
+    0.6 m below them they land on it after 0.6 m and come to rest: an equilibrium, where
+    each block's own limit would have called it a mechanism at 0.5 m."""
+    blocks = [(rect(-1, -1, 14, 1), True), (rect(0, 0, 2, 2), False),
+              (rect(3, 0, 2, 2), False), (rect(6, 0, 2, 2), False),
+              (rect(10, 5, 0.5, 0.5), False), (rect(10.5, 5, 0.5, 0.5), False)]
+    d = blocks_scene("a pair falls", blocks)
+    r = solve(d, dtype)
+    assert_sane(r)
+    assert r.status == "mechanism" and r.moving_blocks == [4, 5]
+    assert "blocks 4, 5 moved together" in r.message and "their limit, 0.707 m" in r.message
+    for i in (4, 5):
+        ux, uy, rot = r.blocks[i]["u"]
+        assert -math.sqrt(0.5) - 0.25 * math.hypot(0.25, 0.25) <= uy < -math.sqrt(0.5)
+        # Straight down in exact arithmetic; float32's round-off in the pair's contact
+        # turns them by about 100 eps.
+        small = {"float64": 1e-6, "float32": 1000 * float(np.finfo(np.float32).eps)}[dtype]
+        assert abs(ux) < small and abs(rot) < small
+    ledge = blocks + [(rect(9.5, 3.9, 2.0, 0.5), True)]  # its top 0.6 m below the pair
+    landed = solve(blocks_scene("a pair lands", ledge), dtype)
+    assert_sane(landed)
+    assert landed.converged and landed.stable
+    for i in (4, 5):
+        assert landed.blocks[i]["u"][1] == pytest.approx(-0.6, abs=1e-3)
+
+
 # The simplest draw of tests/test_properties.py that ended at the iteration limit: a 6 m
 # square of soft rock (no cohesion on intact cuts, the material default) between roller
 # walls on a fixed base, one joint segment across the middle; the rock-mass generation

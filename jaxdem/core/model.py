@@ -20,7 +20,9 @@ Choices made here (documented for users in the README):
   increment without finding equilibrium is falling or sliding away); where the
   scene leaves it out, each block's own limit is its size sqrt(area), between
   ``TRAVEL_FLOOR`` x L and L (a sliver at an opening that works loose is found when
-  it has moved its own size, not L).
+  it has moved its own size, not L), and blocks that move together share the limit of
+  their group, the size of their area together between the same bounds
+  (:func:`jaxdem.core.increment.group_limits`).
 """
 
 from __future__ import annotations
@@ -230,8 +232,9 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
     max_disp = s.max_displacement if s.max_displacement is not None else L
     # Each block's travel limit (a mechanism where one passes it): the scene's
     # max_displacement, else the block's own size, between TRAVEL_FLOOR x L and L.
-    travel_limit = (np.clip(np.sqrt(areas), TRAVEL_FLOOR * L, L) if s.max_displacement is None
-                    else np.full(n_rock, max_disp))
+    travel_range = ((TRAVEL_FLOOR * L, L) if s.max_displacement is None
+                    else (max_disp, max_disp))
+    travel_limit = np.clip(np.sqrt(areas), *travel_range)
     touch_tol = L * (1e-6 if dtype == np.float64 else 1e-4)
 
     # Rigid walls along fixed and roller boundaries.
@@ -374,6 +377,7 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
         step_length=_put(step_length, dtype), margin=_put(margin, dtype),
         touch_tol=_put(touch_tol, dtype), max_displacement=_put(max_disp, dtype),
         travel_limit=_put(np.concatenate([travel_limit, np.full(N - n_rock, max_disp)]), dtype),
+        travel_range=_put(np.asarray(travel_range), dtype),
         span_tol=_put(max(0.01 * L, touch_tol), dtype),
         cos_parallel=_put(math.cos(math.radians(2.0)), dtype),
         corner_share=_put(0.1, dtype),

@@ -44,8 +44,8 @@ def _pytree(data: list[str], meta: list[str]):
         "nv", "vmask", "free", "kind", "kn_inv", "ks_inv", "area", "radius", "f_ext",
         "edge_joint", "joint_kn", "joint_ks", "joint_c", "joint_t", "joint_tanphi",
         "big", "pseudo_mass", "f_ref", "tol", "step_length", "margin", "touch_tol",
-        "max_displacement", "travel_limit", "span_tol", "cos_parallel", "corner_share",
-        "max_iterations", "max_substeps",
+        "max_displacement", "travel_limit", "travel_range", "span_tol", "cos_parallel",
+        "corner_share", "max_iterations", "max_substeps",
         "joint_intact", "gamma_w", "bolt_blocks", "bolt_offsets", "bolt_k", "bolt_cap",
         "bolt_comp", "bolt_pullout", "cell_D", "bond_penalty", "verts0", "centroid0",
     ],
@@ -90,8 +90,11 @@ class Model:
         gap under which faces are in contact. max_displacement: m, the scene's
         travel in one increment beyond which a block is moving (a mechanism).
         travel_limit: (N,) m, each block's own (max_displacement, or where the
-        scene leaves it out the block's size, :mod:`jaxdem.core.model`). span_tol: m,
-        how far past the end of a face a vertex still bears on it (0.01 L).
+        scene leaves it out the block's size, :mod:`jaxdem.core.model`). travel_range:
+        (2,) m, the bounds of a limit ([max_displacement] twice where the scene gives it,
+        else [TRAVEL_FLOOR L, L]), a group's too
+        (:func:`jaxdem.core.increment.group_limits`). span_tol: m, how far past the end
+        of a face a vertex still bears on it (0.01 L).
       cos_parallel: faces closer than this cosine to anti-parallel are an
         edge-to-edge contact. corner_share: effective length of a
         corner-to-edge point as a fraction of its shorter adjacent edge.
@@ -168,6 +171,7 @@ class Model:
     touch_tol: jax.Array
     max_displacement: jax.Array
     travel_limit: jax.Array
+    travel_range: jax.Array
     span_tol: jax.Array
     cos_parallel: jax.Array
     corner_share: jax.Array

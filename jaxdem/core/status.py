@@ -91,7 +91,8 @@ class Status(str, enum.Enum):
         return {
             Status.CONVERGED: "Static equilibrium found.",
             Status.MECHANISM: "No equilibrium: blocks kept moving beyond max_displacement "
-            "or their own size (a mechanism). The named blocks fall, slide or topple.",
+            "or their own size (a group's, where they move together) (a mechanism). The named "
+            "blocks fall, slide or topple.",
             Status.ITERATION_LIMIT: "The iteration limit was reached before equilibrium. "
             "Try increasing solver.max_iterations or solver.load_steps.",
             Status.CAPACITY_OVERFLOW: "The contact list overflowed its capacity.",
