@@ -138,8 +138,8 @@ def group_limits(model: Model, snap: Snapshot, travel):
 
     lab, _ = jax.lax.while_loop(lambda c: c[1], spread, (init, jnp.array(True)))
     group_area = jax.ops.segment_sum(jnp.where(moving, model.area, 0.0), lab, N + 1)
-    own = jnp.clip(jnp.sqrt(group_area[jnp.minimum(lab, N)]), *model.travel_range)
-    return jnp.where(moving, jnp.maximum(own, model.travel_limit), model.travel_limit), lab
+    shared = jnp.clip(jnp.sqrt(group_area[lab]), *model.travel_range)
+    return jnp.where(moving, jnp.maximum(shared, model.travel_limit), model.travel_limit), lab
 
 
 def travelled_too_far(model: Model, snap: Snapshot, travel):
