@@ -22,8 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdem import geometry
-from jaxdem.core.increment import group_limits
-from jaxdem.core.kinematics import bolt_geometry, rotate_vectors, strain_times
+from jaxdem.core.kinematics import bolt_geometry, group_limits, rotate_vectors, strain_times
 from jaxdem.core.model import TRAVEL_FLOOR
 from jaxdem.core.state import OPEN, SLIP
 from jaxdem.core.status import IMBALANCE_FACTOR, LARGE_SLIP, OVERLAP_TOL, STRENGTH_TOL, Status
@@ -479,7 +478,7 @@ def back_and_forth(moving, u, rot, radius, limit) -> str | None:
     A mechanism is found where a block's path in one increment passes its travel limit
     (``limit``: m, a scalar or (n,): ``solver.max_displacement``, or by default each
     block's size, or its group's where blocks moved together,
-    :func:`jaxdem.core.increment.group_limits`; ``moving``: their ids, :func:`moving_blocks`). A
+    :func:`jaxdem.core.kinematics.group_limits`; ``moving``: their ids, :func:`moving_blocks`). A
     block that falls or slides is as far from where it was, less the turns of its
     course; one whose contacts chatter in the iteration goes back and forth, and its path
     can pass the limit where it has moved centimetres. Net movement is measured as the path is

@@ -20,7 +20,8 @@ installed bolts) and looks for static equilibrium with large displacements:
   until a sub-step converges (every free block's |R| <= tol times its own
   force scale, with the springs' forces of the law) with a negligible du, or a block has
   travelled its ``travel_limit`` (mechanism: ``max_displacement``, or by default its own
-  size, or its group's where blocks move together: :func:`group_limits`).
+  size, or its group's where blocks move together:
+  :func:`jaxdem.core.kinematics.group_limits`).
 
 Owns :func:`increment` and :func:`increment_tangent` (jitted), the loop of
 sub-steps :func:`substeps_to_equilibrium` that sets the :class:`jaxdem.core.status.Status` of
@@ -44,7 +45,7 @@ import jax.numpy as jnp
 from jaxdem.core._linsolve import bounded_factorisations  # noqa: F401 (for the host's loop)
 from jaxdem.core._substep import Unbalanced, substep
 from jaxdem.core.compile_cache import on_disk
-from jaxdem.core.kinematics import block_travel, rotate_vectors
+from jaxdem.core.kinematics import block_travel, group_limits, rotate_vectors
 from jaxdem.core.sensitivities import substep_tangent
 from jaxdem.core.state import Balance, Loads, Model, Snapshot, State, float_part
 from jaxdem.core.status import (
@@ -105,47 +106,10 @@ def increment_tangent(model: Model, state: State, loads: Loads, tangents: dict):
     return substeps_to_equilibrium(model, state, loads, tangents)
 
 
-def group_limits(model: Model, snap: Snapshot, travel):
-    """Each block's travel limit (N,) m, where blocks that move together share their
-    group's; and each block's group (N,), the least index in it (N for a block that does
-    not move).
-
-    A block's own limit (``model.travel_limit``) is its size where the scene leaves
-    ``max_displacement`` out; a wedge cut into several cells that slides as one must not
-    be a mechanism once its smallest cell has moved that cell's size, but once the wedge
-    has moved the wedge's. Moving: a free block whose path in the increment (``travel``)
-    passed a tenth of ``max_displacement`` (as :func:`jaxdem.results.moving_blocks` names
-    them); together: joined through slots of the contact list (``snap.active``: within
-    the detection margin) between moving blocks. Each group's limit is the size of its
-    area together, sqrt(sum area), between ``model.travel_range`` (so the group of one
-    block has its own limit, and every limit is ``max_displacement`` where the scene
-    gives it). Groups by label propagation: each moving block takes the least label
-    among its moving neighbours, then its label's label, until none changes (a few
-    rounds: about the logarithm of the group's extent)."""
-    N = model.n_blocks
-    idx = jnp.arange(N)
-    moving = model.free & (travel > 0.1 * model.max_displacement)
-    a, b = snap.a, snap.b
-    link = snap.active & moving[a] & moving[b]
-    init = jnp.where(moving, idx, N)
-
-    def spread(c):
-        lab, _ = c
-        m = jnp.where(link, jnp.minimum(lab[a], lab[b]), N)
-        new = lab.at[a].min(m).at[b].min(m)
-        new = jnp.where(moving, jnp.minimum(new, new[jnp.minimum(new, N - 1)]), N)
-        return new, jnp.any(new != lab)
-
-    lab, _ = jax.lax.while_loop(lambda c: c[1], spread, (init, jnp.array(True)))
-    group_area = jax.ops.segment_sum(jnp.where(moving, model.area, 0.0), lab, N + 1)
-    shared = jnp.clip(jnp.sqrt(group_area[lab]), *model.travel_range)
-    return jnp.where(moving, jnp.maximum(shared, model.travel_limit), model.travel_limit), lab
-
-
 def travelled_too_far(model: Model, snap: Snapshot, travel):
     """Whether a block's path in this increment passed its limit (a mechanism), its
-    group's where blocks move together (:func:`group_limits`, worked out only once a
-    block has passed its own limit)."""
+    group's where blocks move together (:func:`jaxdem.core.kinematics.group_limits`,
+    worked out only once a block has passed its own limit)."""
     past_own = jnp.any(travel > model.travel_limit)
     return past_own & jax.lax.cond(
         past_own, lambda: jnp.any(travel > group_limits(model, snap, travel)[0]),

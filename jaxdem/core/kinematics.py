@@ -4,7 +4,8 @@ Owns the maps from a block's generalised displacement (ux, uy, theta[, eps_x,
 eps_y, gamma_xy]) to the motion of its points: :func:`point_row` and
 :func:`b_rows` (the rows of B), :func:`strain_times`, :func:`rotate_vectors`,
 :func:`move_blocks` (the exact motion of a whole increment), :func:`bolt_geometry`
-and :func:`bolt_length_derivatives` (bolt anchors), :func:`block_travel`, and the gather and
+and :func:`bolt_length_derivatives` (bolt anchors), :func:`block_travel` and
+:func:`group_limits` (how far a block moved, and how far it may), and the gather and
 scatter between slots and blocks. Pure jax.numpy on fixed shapes; no laws.
 
 Data flow: takes the device pytrees of :mod:`jaxdem.core.state`; used by the spring
@@ -20,7 +21,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxdem.core.state import Model, State
+from jaxdem.core.state import Model, Snapshot, State
 
 
 def cross(r, v):
@@ -214,3 +215,40 @@ def block_travel(model: Model, du):
     if model.ndof == 6:
         spin = spin + jnp.sum(jnp.abs(du[:, 3:]), axis=1)
     return jnp.sqrt(du[:, 0] ** 2 + du[:, 1] ** 2) + spin * model.radius
+
+
+def group_limits(model: Model, snap: Snapshot, travel):
+    """Each block's travel limit (N,) m, where blocks that move together share their
+    group's; and each block's group (N,), the least index in it (N for a block that does
+    not move).
+
+    A block's own limit (``model.travel_limit``) is its size where the scene leaves
+    ``max_displacement`` out; a wedge cut into several cells that slides as one must not
+    be a mechanism once its smallest cell has moved that cell's size, but once the wedge
+    has moved the wedge's. Moving: a free block whose path in the increment (``travel``)
+    passed a tenth of ``max_displacement`` (as :func:`jaxdem.results.moving_blocks` names
+    them); together: joined through slots of the contact list (``snap.active``: within
+    the detection margin) between moving blocks. Each group's limit is the size of its
+    area together, sqrt(sum area), between ``model.travel_range`` (so the group of one
+    block has its own limit, and every limit is ``max_displacement`` where the scene
+    gives it). Groups by label propagation: each moving block takes the least label
+    among its moving neighbours, then its label's label, until none changes (a few
+    rounds: about the logarithm of the group's extent)."""
+    N = model.n_blocks
+    idx = jnp.arange(N)
+    moving = model.free & (travel > 0.1 * model.max_displacement)
+    a, b = snap.a, snap.b
+    link = snap.active & moving[a] & moving[b]
+    init = jnp.where(moving, idx, N)
+
+    def spread(c):
+        lab, _ = c
+        m = jnp.where(link, jnp.minimum(lab[a], lab[b]), N)
+        new = lab.at[a].min(m).at[b].min(m)
+        new = jnp.where(moving, jnp.minimum(new, new[jnp.minimum(new, N - 1)]), N)
+        return new, jnp.any(new != lab)
+
+    lab, _ = jax.lax.while_loop(lambda c: c[1], spread, (init, jnp.array(True)))
+    group_area = jax.ops.segment_sum(jnp.where(moving, model.area, 0.0), lab, N + 1)
+    shared = jnp.clip(jnp.sqrt(group_area[lab]), *model.travel_range)
+    return jnp.where(moving, jnp.maximum(shared, model.travel_limit), model.travel_limit), lab

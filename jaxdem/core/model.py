@@ -22,7 +22,7 @@ Choices made here (documented for users in the README):
   ``TRAVEL_FLOOR`` x L and L (a sliver at an opening that works loose is found when
   it has moved its own size, not L), and blocks that move together share the limit of
   their group, the size of their area together between the same bounds
-  (:func:`jaxdem.core.increment.group_limits`).
+  (:func:`jaxdem.core.kinematics.group_limits`).
 """
 
 from __future__ import annotations

@@ -93,7 +93,7 @@ class Model:
         scene leaves it out the block's size, :mod:`jaxdem.core.model`). travel_range:
         (2,) m, the bounds of a limit ([max_displacement] twice where the scene gives it,
         else [TRAVEL_FLOOR L, L]), a group's too
-        (:func:`jaxdem.core.increment.group_limits`). span_tol: m, how far past the end
+        (:func:`jaxdem.core.kinematics.group_limits`). span_tol: m, how far past the end
         of a face a vertex still bears on it (0.01 L).
       cos_parallel: faces closer than this cosine to anti-parallel are an
         edge-to-edge contact. corner_share: effective length of a
