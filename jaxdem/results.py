@@ -653,7 +653,7 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
     limit = np.asarray(model.travel_limit, float)
     group = np.arange(limit.shape[0])
     if status == Status.MECHANISM:
-        # Blocks that moved together had their group's limit (jaxdem.core.increment).
+        # Blocks that moved together had their group's limit (group_limits).
         limit, group = (np.asarray(x) for x in _group_limits(model, info.snapshot, info.travel))
     last = records[-1]
     overlap, overlap_rel = block_overlap(model, state, nr + len(layout.walls))
@@ -675,7 +675,8 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
         held = (f" Its load step was cut {cut} time{'s' if cut > 1 else ''}: the last "
                 f"equilibrium at load factor {(k - 1) / n:.4g}, none found at {k / n:.4g}.")
     if status == Status.MECHANISM:
-        # Which block passed its limit: the scene's max_displacement, or its own size.
+        # Which block passed its limit: the scene's max_displacement, its own size or
+        # its group's.
         first = int(np.argmax(travel / limit[:nr]))
         together = np.flatnonzero(group[:nr] == group[first])
         if limit[first] >= max_disp:
