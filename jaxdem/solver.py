@@ -29,6 +29,7 @@ from jaxdem.config import float64
 from jaxdem.core import model as model_mod
 from jaxdem.core.compile_cache import COMPILE_TIMES, QUICK_WORK, compiled_program, prefetch
 from jaxdem.core.increment import bounded_factorisations, increment, increment_tangent
+from jaxdem.core.kinematics import connected_groups
 from jaxdem.core.loads import in_situ_preload, make_loads, release_forces_jit
 from jaxdem.core.sensitivities import STATE_FLOATS, preload_tangent, release_with_tangent
 from jaxdem.core.state import OPEN, Loads, Model, State, grow_capacity
@@ -420,6 +421,10 @@ def scene_data(scene, layout) -> Data:
                      if st.water_table is not None})
 
 
+_connected_groups = jax.jit(connected_groups)
+"""Groups of blocks in closed contact, for :meth:`_Driver.free_falling` (one program)."""
+
+
 class _Driver:
     """Host loop over stages and load steps; collects the records of a Result.
 
@@ -552,18 +557,12 @@ class _Driver:
             return None
         snap = self.info.snapshot
         closed = (np.asarray(snap.active) & (np.asarray(snap.state) != OPEN)).reshape(-1)
-        a = np.asarray(snap.a).reshape(-1)[closed]
-        b = np.asarray(snap.b).reshape(-1)[closed]
-        if np.any(moving[a] != moving[b]):
+        a, b = np.asarray(snap.a).reshape(-1), np.asarray(snap.b).reshape(-1)
+        if np.any(moving[a[closed]] != moving[b[closed]]):
             return None  # a contact in the way: the blocks slide or rotate on the rock
-        group = np.arange(N)
-        for _ in range(N):  # label propagation: each block takes its contacts' least label
-            new = group.copy()
-            np.minimum.at(new, a, group[b])
-            np.minimum.at(new, b, group[a])
-            if np.array_equal(new, group):
-                break
-            group = new
+        # Groups of moving blocks in closed contact (the slots' fixed shapes: one program).
+        group = np.asarray(_connected_groups(jnp.asarray(moving), jnp.asarray(a),
+                                             jnp.asarray(b), jnp.asarray(closed)))
         area = np.bincount(group[moving], weights=np.asarray(self.model.area)[moving],
                            minlength=N)
         return moving if area.max() <= limit else None

@@ -5,7 +5,8 @@ eps_y, gamma_xy]) to the motion of its points: :func:`point_row` and
 :func:`b_rows` (the rows of B), :func:`strain_times`, :func:`rotate_vectors`,
 :func:`move_blocks` (the exact motion of a whole increment), :func:`bolt_geometry`
 and :func:`bolt_length_derivatives` (bolt anchors), :func:`block_travel` and
-:func:`group_limits` (how far a block moved, and how far it may), and the gather and
+:func:`group_limits` (how far a block moved, and how far it may: :func:`connected_groups`
+of the blocks that move together), and the gather and
 scatter between slots and blocks. Pure jax.numpy on fixed shapes; no laws.
 
 Data flow: takes the device pytrees of :mod:`jaxdem.core.state`; used by the spring
@@ -217,10 +218,32 @@ def block_travel(model: Model, du):
     return jnp.sqrt(du[:, 0] ** 2 + du[:, 1] ** 2) + spin * model.radius
 
 
+def connected_groups(moving, a, b, link):
+    """Each block's group among the ``moving`` (N,) blocks joined by the slots ``link``
+    (S,) between blocks ``a`` and ``b`` (S,): the least index in its group, N for a block
+    that does not move.
+
+    Label propagation: each moving block takes the least label among its linked
+    neighbours, then its label's label (pointer jumping), until none changes: a few rounds,
+    about the logarithm of a group's extent. Fixed shapes, a ``while_loop``: jittable and
+    vmappable."""
+    N = moving.shape[0]
+    link = link & moving[a] & moving[b]
+
+    def spread(c):
+        lab, _ = c
+        m = jnp.where(link, jnp.minimum(lab[a], lab[b]), N)
+        new = lab.at[a].min(m).at[b].min(m)
+        new = jnp.where(moving, jnp.minimum(new, new[jnp.minimum(new, N - 1)]), N)
+        return new, jnp.any(new != lab)
+
+    init = jnp.where(moving, jnp.arange(N), N)
+    return jax.lax.while_loop(lambda c: c[1], spread, (init, jnp.array(True)))[0]
+
+
 def group_limits(model: Model, snap: Snapshot, travel):
     """Each block's travel limit (N,) m, where blocks that move together share their
-    group's; and each block's group (N,), the least index in it (N for a block that does
-    not move).
+    group's; and each block's group (N,) (:func:`connected_groups`).
 
     A block's own limit (``model.travel_limit``) is its size where the scene leaves
     ``max_displacement`` out; a wedge cut into several cells that slides as one must not
@@ -231,24 +254,10 @@ def group_limits(model: Model, snap: Snapshot, travel):
     the detection margin) between moving blocks. Each group's limit is the size of its
     area together, sqrt(sum area), between ``model.travel_range`` (so the group of one
     block has its own limit, and every limit is ``max_displacement`` where the scene
-    gives it). Groups by label propagation: each moving block takes the least label
-    among its moving neighbours, then its label's label, until none changes (a few
-    rounds: about the logarithm of the group's extent)."""
+    gives it)."""
     N = model.n_blocks
-    idx = jnp.arange(N)
     moving = model.free & (travel > 0.1 * model.max_displacement)
-    a, b = snap.a, snap.b
-    link = snap.active & moving[a] & moving[b]
-    init = jnp.where(moving, idx, N)
-
-    def spread(c):
-        lab, _ = c
-        m = jnp.where(link, jnp.minimum(lab[a], lab[b]), N)
-        new = lab.at[a].min(m).at[b].min(m)
-        new = jnp.where(moving, jnp.minimum(new, new[jnp.minimum(new, N - 1)]), N)
-        return new, jnp.any(new != lab)
-
-    lab, _ = jax.lax.while_loop(lambda c: c[1], spread, (init, jnp.array(True)))
+    lab = connected_groups(moving, snap.a, snap.b, snap.active)
     group_area = jax.ops.segment_sum(jnp.where(moving, model.area, 0.0), lab, N + 1)
     shared = jnp.clip(jnp.sqrt(group_area[lab]), *model.travel_range)
     return jnp.where(moving, jnp.maximum(shared, model.travel_limit), model.travel_limit), lab
