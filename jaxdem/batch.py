@@ -47,7 +47,7 @@ from jaxdem.core.status import Status
 from jaxdem.differentiable import ParameterMap, monitor_readings
 from jaxdem.results import is_small, loose_limit, mechanism_volume, moving_blocks
 from jaxdem.scene import SceneError, apply_overrides
-from jaxdem.solver import Data, increment_count, run, scene_data
+from jaxdem.solver import Data, falling_free, increment_count, run, scene_data
 
 SAMPLE_AXIS = "samples"
 
@@ -72,9 +72,10 @@ class BatchResult:
         :func:`jaxdem.results.mechanism_volume`), 0.0 where a sample found no mechanism.
       small_mechanism: (S,) bool, a sample's mechanism is small: its moving blocks
         together no larger than ``solver.max_loose_volume`` or its default
-        (:func:`jaxdem.results.is_small`): pieces working loose, such as a block that a
-        single solve would remove as loose (a batch does not remove them), not a collapse
+        (:func:`jaxdem.results.is_small`): pieces working loose, not a collapse
         (docs/results.md, "A small mechanism").
+      loose_blocks: (S,) lists: the blocks each sample removed as loose (README, "Loose
+        blocks"), as ``Result.loose_blocks``' ids; [] where none fell.
       stopped: (S,) where a sample without an answer stopped: ``{"stage": name,
         "load_factor": f}``, the stage ("loading", "initial" or the file's stage name)
         and the fraction of its load at the increment that failed (as ``Result.stages``'
@@ -98,6 +99,7 @@ class BatchResult:
     stopped: list = dataclasses.field(default_factory=list)
     moving_volume: np.ndarray | None = None
     small_mechanism: np.ndarray | None = None
+    loose_blocks: list | None = None
 
     def __post_init__(self):
         S = len(self.status)
@@ -105,6 +107,8 @@ class BatchResult:
             self.moving_volume = np.zeros(S)
         if self.small_mechanism is None:
             self.small_mechanism = np.zeros(S, bool)
+        if self.loose_blocks is None:
+            self.loose_blocks = [[] for _ in range(S)]
 
 
 @float64
@@ -179,6 +183,7 @@ def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
     status = np.zeros(S, int)
     iterations = np.zeros(S, int)
     moving: list = [[] for _ in range(S)]
+    loose: list = [[] for _ in range(S)]
     stopped: list = [None] * S
     compile_by_thread: collections.Counter = collections.Counter()
     placed = done = 0
@@ -189,6 +194,7 @@ def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
         iterations[rows] = c["iterations"]
         for i, row in enumerate(rows):
             moving[row] = c["moving"][i]
+            loose[row] = c["loose"][i]
             stopped[row] = c["stopped"][i]
         for name, v in c["monitors"].items():
             out_mon.setdefault(name, np.full((S,) + v.shape[1:], np.nan))[rows] = v
@@ -212,7 +218,7 @@ def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
         converged=ok, iterations=iterations,
         timing=dict(build_s=build_s, compile_s=compile_s, solve_s=solve_s, chunk=size,
                     devices=placed, workers=workers), moving_blocks=moving, stopped=stopped,
-        moving_volume=volume, small_mechanism=small)
+        moving_volume=volume, small_mechanism=small, loose_blocks=loose)
 
 
 def _solve_chunk(scene, prepared, theta, rows, size: int, devices, quick: bool,
@@ -245,7 +251,7 @@ def _solve_chunk(scene, prepared, theta, rows, size: int, devices, quick: bool,
         v = np.asarray(v, float)[:n]
         monitors[name] = v[:, 0] if layout.monitors[name]["kind"] == "section" else v
     return dict(rows=rows, status=d.status_of[:n], iterations=d.iterations[:n],
-                moving=d.moving[:n], stopped=d.stopped[:n], monitors=monitors,
+                moving=d.moving[:n], loose=d.loose[:n], stopped=d.stopped[:n], monitors=monitors,
                 compile_s=d.compile_s, devices=len(d.state.verts.sharding.device_set),
                 thread=threading.get_ident())
 
@@ -462,7 +468,9 @@ def _preload_lanes(model, fields, state, loads, args, mode):
 
 @functools.partial(jax.jit, static_argnames=("ndof",))
 def _release_lanes(centroid, snap, removed, ndof):
-    return jax.vmap(lambda c, s: release_forces(c, s, removed, ndof))(centroid, snap)
+    # ``removed``: (N,) the same blocks for every sample, or (C, N) each sample's own.
+    removed = jnp.broadcast_to(removed, centroid.shape[:1] + removed.shape[-1:])
+    return jax.vmap(lambda c, s, r: release_forces(c, s, r, ndof))(centroid, snap, removed)
 
 
 def _grow(state, capacity: int):
@@ -476,6 +484,12 @@ class _BatchDriver:
     any sample is still going, so the loop runs until every sample has finished
     or failed. Each sample's own outcome is in ``status_of``. ``ready`` (a
     threading.Event), if given, is set once the increment's program is in hand.
+
+    Loose blocks (README, "Loose blocks") as a single solve removes them: where a
+    sample's stage ends in a mechanism of small blocks falling free, the chunk runs the
+    stage again from its start (:meth:`restore`), that sample without them; the others
+    run it as before, to the same answer (each sample's solve is its own in the batched
+    program). ``loose`` holds each sample's removed blocks.
     """
 
     def __init__(self, model, fields, state, layout, data: Data, devices, quick=False,
@@ -488,6 +502,9 @@ class _BatchDriver:
         self.live = np.ones(C, bool)
         self.iterations = np.zeros(C, int)
         self.moving: list = [[] for _ in range(C)]  # each sample's mechanism, where it found one
+        self.loose: list = [[] for _ in range(C)]  # each sample's blocks removed as loose
+        self.found_in: list = [None] * C  # (travel, snapshot) of each sample's mechanism
+        self.started = np.ones(C, bool)  # the samples that run the current stage
         self.stopped: list = [None] * C  # where each sample that failed stopped
         self.ref = self.dref = self.dstate = self.info = None
         self.records: list = []
@@ -521,8 +538,9 @@ class _BatchDriver:
     def step(self, stage, k, n, loads, released=None):
         loads = loads[0]
         fn_jit = _increment_fn(self.devices)
+        act = self.live.copy()
         while True:
-            skip = jnp.asarray(~self.live)
+            skip = jnp.asarray(~act)
             t1 = time.perf_counter()
             fn, dt = compiled_program(fn_jit, self.model, self.fields, self.state, loads, skip,
                                       quick=self.quick)
@@ -533,7 +551,7 @@ class _BatchDriver:
                 status = np.asarray(info.status)
             self.compile_s += dt
             self.solve_s += time.perf_counter() - t1 - dt
-            over = (status == Status.CAPACITY_OVERFLOW.code) & self.live
+            over = (status == Status.CAPACITY_OVERFLOW.code) & act
             if not over.any():
                 break
             self.model = model_mod.grown(self.model,
@@ -545,22 +563,75 @@ class _BatchDriver:
             if need > cap:
                 self.state = _grow(self.state, model_mod.bucket(max(2 * cap, need)))
         self.state, self.info = new, info
-        self.iterations += np.where(self.live, np.asarray(info.iterations), 0)
-        found = np.nonzero(self.live & (status == Status.MECHANISM.code))[0]
+        self.iterations += np.where(act, np.asarray(info.iterations), 0)
+        found = np.nonzero(act & (status == Status.MECHANISM.code))[0]
         if found.size:
-            travel = np.asarray(info.travel)[:, :self.layout.n_rock]
+            travel = np.asarray(info.travel)
             limit = np.broadcast_to(np.asarray(self.fields.get(
                 "max_displacement", self.model.max_displacement), float), (self.C,))
             for c in found:
-                self.moving[c] = moving_blocks(travel[c], float(limit[c]))
-        for c in np.nonzero(self.live & (status != Status.CONVERGED.code))[0]:
+                self.moving[c] = moving_blocks(travel[c, :self.layout.n_rock], float(limit[c]))
+                # What free_falling reads once the stage is done (the sample's later
+                # increments are skipped, and their reports hold nothing of it).
+                self.found_in[c] = (travel[c], jax.tree.map(lambda x, c=c: np.asarray(x[c]),
+                                                            info.snapshot))
+        for c in np.nonzero(act & (status != Status.CONVERGED.code))[0]:
             self.stopped[c] = dict(stage=stage, load_factor=k / n)
-        self.status_of = np.where(self.live, status, self.status_of)
-        self.live &= status == Status.CONVERGED.code
+        self.status_of = np.where(act, status, self.status_of)
+        self.live &= ~act | (status == Status.CONVERGED.code)
         self.records.append(dict(stage=stage, step=k, load_factor=k / n,
                                  live=int(self.live.sum()),
                                  **({} if released is None else dict(released=released))))
         return bool(self.live.any())
+
+    def removes_loose(self, relaxed: bool) -> bool:
+        """Whether loose blocks are removed sample by sample: not where an excavation's
+        load is released over several stages (the release loads of the samples held in a
+        stage's second run would be those of its end)."""
+        return not relaxed
+
+    def no_loose(self) -> np.ndarray:
+        return np.zeros((self.C, self.model.n_blocks), bool)
+
+    def checkpoint(self) -> dict:
+        """The samples' state at the start of a stage, to run it again (:meth:`restore`)."""
+        self.started = self.live.copy()  # the samples that run this stage
+        return dict(state=self.state, info=self.info, live=self.live.copy(),
+                    status_of=self.status_of.copy(), iterations=self.iterations.copy(),
+                    moving=list(self.moving), stopped=list(self.stopped),
+                    bolt_active=self.bolt_active.copy(), records=len(self.records))
+
+    def restore(self, saved: dict, loose=None) -> None:
+        """Back to a :meth:`checkpoint`, every sample (the model keeps any capacity grown
+        since); ``loose`` (C, N), the blocks found falling free, is :func:`jaxdem.solver.run`'s
+        to remove."""
+        self.state, self.info = saved["state"], saved["info"]
+        self.live, self.status_of = saved["live"].copy(), saved["status_of"].copy()
+        self.iterations = saved["iterations"].copy()
+        self.moving, self.stopped = list(saved["moving"]), list(saved["stopped"])
+        self.found_in = [None] * self.C
+        self.bolt_active = saved["bolt_active"].copy()
+        del self.records[saved["records"]:]
+
+    def record_loose(self, found, stage: str) -> None:
+        for c, row in enumerate(np.asarray(found)):
+            self.loose[c] += [int(i) for i in np.nonzero(row)[0]]
+
+    def free_falling(self, limit: float):
+        """The (C, N) masks of each sample's blocks falling free (as the single solve's
+        :func:`jaxdem.solver.falling_free`) where its stage ended in a mechanism, else
+        None."""
+        out = self.no_loose()
+        mechanism = self.started & (self.status_of == Status.MECHANISM.code)
+        for c in np.nonzero(mechanism)[0]:
+            if self.found_in[c] is None:
+                continue
+            travel, snap = self.found_in[c]
+            mask = falling_free(self.model, self.layout, travel, snap,
+                                np.asarray(self.state.alive[c]), limit)
+            if mask is not None:
+                out[c] = mask
+        return out if out.any() else None
 
     def release(self, removed):
         N, D = self.model.n_blocks, self.model.ndof

@@ -594,7 +594,7 @@ def _message(c: GroundReaction) -> str:
         if m.get("small"):
             text += (f" It is small ({m['volume']:.3g} m3/m, no larger than "
                      f"solver.max_loose_volume): pieces working loose at the opening, not a "
-                     f"collapse of the rock mass (a batch does not remove loose blocks).")
+                     f"collapse of the rock mass.")
     else:
         text += " Every level is stable." if not c.undecided else ""
     if c.undecided:

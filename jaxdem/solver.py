@@ -184,17 +184,17 @@ def run(scene, model: Model, state: State, layout, data: Data, progress=None,
     releasing: list[dict] = []
     relaxed = any(len(e.release) > 1 for e in scene.excavations)
     # Loose blocks (README, "Loose blocks"): a stage that ends in a mechanism of small
-    # blocks falling free is run again from its start with them excavated in it.
-    limit = (loose_limit(scene)
-             if scene.solver.loose_blocks == "remove" and isinstance(d, _Driver) else None)
-    if limit is not None and limit <= 0.0:
+    # blocks falling free is run again from its start with them excavated in it (in a
+    # batch, for the samples where they fell: jaxdem.batch).
+    limit = loose_limit(scene) if scene.solver.loose_blocks == "remove" else None
+    if limit is not None and (limit <= 0.0 or not d.removes_loose(relaxed)):
         limit = None
     for index, stage in enumerate(plan, 1):
         if d.status != Status.CONVERGED:
             break
         d.stage_index = index
         start = d.checkpoint() if limit is not None else None
-        loose = np.zeros(N, bool)
+        loose = d.no_loose()  # (N,); in a batch (C, N), each sample's own
         for attempt in range(MAX_LOOSE_ROUNDS + 1):
             now = _run_stage(d, stage, layout, data, base, pending, releasing, loose, relaxed)
             found = (d.free_falling(limit) if limit is not None and attempt < MAX_LOOSE_ROUNDS
@@ -202,11 +202,8 @@ def run(scene, model: Model, state: State, layout, data: Data, progress=None,
             if found is None or not (found & ~loose).any():
                 break
             found &= ~loose
-            d.restore(start)
-            d.loose += [dict(id=int(i), stage=stage["name"],
-                             volume=float(np.asarray(d.model.area)[i]),
-                             centroid=layout.centroids[i].tolist())
-                        for i in np.nonzero(found)[0]]
+            d.restore(start, found)
+            d.record_loose(found, stage["name"])
             loose |= found
         base, pending = base + pending + now["support"], zero
         releasing = [dict(r, before=r["held"][0], held=r["held"][1:]) for r in now["releasing"]
@@ -231,13 +228,13 @@ def _run_stage(d, stage, layout, data, base, pending, releasing, loose, relaxed)
     groups = _release_groups(stage["excavations"], layout, N)
     if loose.any():
         groups.append(([], loose, (0.0,)))
-    removed |= loose
+    removed = removed | loose  # (N,), or (C, N) in a batch: each sample's own
     for names, mask, held in groups:
         load = d.release(mask)
         if not np.array_equal(mask, removed):
             # Several schedules in one stage: what these blocks pushed on the blocks
             # removed with them is on no block left.
-            load = np.where((removed & ~mask)[None, :, None], 0.0, load)
+            load = np.where((removed & ~mask)[..., None], 0.0, load)
         releasing.append(dict(names=names, load=load, before=1.0, held=held))
     if removed.any():
         alive = np.asarray(d.state.alive) & ~removed
@@ -422,7 +419,35 @@ def scene_data(scene, layout) -> Data:
 
 
 _connected_groups = jax.jit(connected_groups)
-"""Groups of blocks in closed contact, for :meth:`_Driver.free_falling` (one program)."""
+"""Groups of blocks in closed contact, for :func:`falling_free` (one program)."""
+
+
+def falling_free(model: Model, layout, travel, snap, alive, limit: float):
+    """The (N,) mask of the blocks of a mechanism if they all fall free and are small,
+    else None: ``travel`` (N,) each block's path in the increment that found it (m),
+    ``snap`` its contacts at the end, ``alive`` (N,) the blocks still there.
+
+    Moving: travelled more than a tenth of ``max_displacement`` in the increment (as
+    ``Result.moving_blocks``). Free: no closed contact (stuck or slipping) joins a
+    moving block to one that is not moving, or to a boundary. Small: each group of
+    moving blocks in closed contact with each other has an area of at most ``limit``
+    (m2, m3 per m of tunnel).
+    """
+    nr, N = layout.n_rock, model.n_blocks
+    moving = np.zeros(N, bool)
+    moving[:nr] = np.asarray(travel)[:nr] > 0.1 * float(model.max_displacement)
+    moving &= np.asarray(alive)
+    if not moving.any():
+        return None
+    closed = (np.asarray(snap.active) & (np.asarray(snap.state) != OPEN)).reshape(-1)
+    a, b = np.asarray(snap.a).reshape(-1), np.asarray(snap.b).reshape(-1)
+    if np.any(moving[a[closed]] != moving[b[closed]]):
+        return None  # a contact in the way: the blocks slide or rotate on the rock
+    # Groups of moving blocks in closed contact (the slots' fixed shapes: one program).
+    group = np.asarray(_connected_groups(jnp.asarray(moving), jnp.asarray(a),
+                                         jnp.asarray(b), jnp.asarray(closed)))
+    area = np.bincount(group[moving], weights=np.asarray(model.area)[moving], minlength=N)
+    return moving if area.max() <= limit else None
 
 
 class _Driver:
@@ -528,44 +553,37 @@ class _Driver:
                     bolt_active=self.bolt_active.copy(), approximate=self.approximate,
                     cuts=len(self.cuts))
 
-    def restore(self, saved: dict) -> None:
-        """Back to a :meth:`checkpoint` (the model keeps any capacity grown since)."""
+    def restore(self, saved: dict, loose=None) -> None:
+        """Back to a :meth:`checkpoint` (the model keeps any capacity grown since); ``loose``
+        (the blocks found falling free, for which the stage is run again) is a batch's
+        business (:class:`jaxdem.batch._BatchDriver`)."""
         self.state, self.dstate, self.info = saved["state"], saved["dstate"], saved["info"]
         self.status, self.approximate = saved["status"], saved["approximate"]
         del self.records[saved["records"]:], self.history[saved["history"]:]
         del self.cuts[saved["cuts"]:]
         self.bolt_active = saved["bolt_active"].copy()
 
+    def removes_loose(self, relaxed: bool) -> bool:
+        """Whether this driver removes loose blocks (:func:`run`): a single solve does."""
+        return True
+
+    def no_loose(self) -> np.ndarray:
+        """The (N,) mask of no loose block, which :func:`run` fills stage by stage."""
+        return np.zeros(self.model.n_blocks, bool)
+
+    def record_loose(self, found, stage: str) -> None:
+        """The blocks ``found`` (N,) falling free in ``stage``, for ``Result.loose_blocks``."""
+        self.loose += [dict(id=int(i), stage=stage, volume=float(np.asarray(self.model.area)[i]),
+                            centroid=self.layout.centroids[i].tolist())
+                       for i in np.nonzero(found)[0]]
+
     def free_falling(self, limit: float):
         """After a mechanism: the (N,) mask of the moving blocks if they all fall free and
-        are small, else None.
-
-        Moving: travelled more than a tenth of ``max_displacement`` in the increment (as
-        ``Result.moving_blocks``). Free: no closed contact (stuck or slipping) joins a
-        moving block to one that is not moving, or to a boundary. Small: each group of
-        moving blocks in closed contact with each other has an area of at most ``limit``
-        (m2, m3 per m of tunnel).
-        """
+        are small, else None (:func:`falling_free`)."""
         if self.status != Status.MECHANISM:
             return None
-        nr, N = self.layout.n_rock, self.model.n_blocks
-        moving = np.zeros(N, bool)
-        moving[:nr] = np.asarray(self.info.travel)[:nr] > 0.1 * float(
-            self.model.max_displacement)
-        moving &= np.asarray(self.state.alive)
-        if not moving.any():
-            return None
-        snap = self.info.snapshot
-        closed = (np.asarray(snap.active) & (np.asarray(snap.state) != OPEN)).reshape(-1)
-        a, b = np.asarray(snap.a).reshape(-1), np.asarray(snap.b).reshape(-1)
-        if np.any(moving[a[closed]] != moving[b[closed]]):
-            return None  # a contact in the way: the blocks slide or rotate on the rock
-        # Groups of moving blocks in closed contact (the slots' fixed shapes: one program).
-        group = np.asarray(_connected_groups(jnp.asarray(moving), jnp.asarray(a),
-                                             jnp.asarray(b), jnp.asarray(closed)))
-        area = np.bincount(group[moving], weights=np.asarray(self.model.area)[moving],
-                           minlength=N)
-        return moving if area.max() <= limit else None
+        return falling_free(self.model, self.layout, self.info.travel, self.info.snapshot,
+                            self.state.alive, limit)
 
     def release(self, removed):
         """Forces (1 + p, N, D) of the blocks being removed on the rest, from the last contacts."""

@@ -328,7 +328,7 @@ def solve_each(scene, params, theta, progress=None) -> BatchResult:
 
     S = theta.shape[0]
     monitors: dict = {}
-    status, stopped, moving, iterations = [], [], [], np.zeros(S, int)
+    status, stopped, moving, loose, iterations = [], [], [], [], np.zeros(S, int)
     volume, small = np.zeros(S), np.zeros(S, bool)
     timing = dict(build_s=0.0, compile_s=0.0, solve_s=0.0, chunk=1, devices=1, workers=1)
     for i, row in enumerate(theta):
@@ -341,6 +341,7 @@ def solve_each(scene, params, theta, progress=None) -> BatchResult:
                        dict(stage=last["name"], load_factor=last["load_factor"][-1]))
         iterations[i] = sum(sum(st["iterations"]) for st in res.stages)
         moving.append(list(res.moving_blocks))
+        loose.append([b["id"] for b in res.loose_blocks])
         if res.moving_blocks:  # each sample's own blocks: a loop's parameter may cut them
             area = np.abs(signed_areas(res.geometry["initial_vertices"]))
             volume[i] = mechanism_volume(res.moving_blocks, area)
@@ -357,7 +358,7 @@ def solve_each(scene, params, theta, progress=None) -> BatchResult:
                        status=list(status), stable=status_arr != "mechanism",
                        converged=status_arr == "converged", iterations=iterations,
                        timing=timing, moving_blocks=moving, stopped=stopped,
-                       moving_volume=volume, small_mechanism=small)
+                       moving_volume=volume, small_mechanism=small, loose_blocks=loose)
 
 
 def probability_of_instability(batch: BatchResult, z: float = 1.959964) -> dict:
@@ -407,7 +408,7 @@ def _take(batch: BatchResult, rows: slice) -> BatchResult:
         status=batch.status[rows], stable=batch.stable[rows], converged=batch.converged[rows],
         iterations=batch.iterations[rows], moving_blocks=batch.moving_blocks[rows],
         stopped=batch.stopped[rows], moving_volume=batch.moving_volume[rows],
-        small_mechanism=batch.small_mechanism[rows])
+        small_mechanism=batch.small_mechanism[rows], loose_blocks=batch.loose_blocks[rows])
 
 
 def check_values(scene, variables, theta) -> None:

@@ -183,8 +183,8 @@ def sweep_summary(result: Any) -> str:
     if pr.get("small"):
         lines.append(f"{pr['small']} of the {pr['unstable']} mechanisms are small: their moving "
                      f"blocks together no larger than solver.max_loose_volume, pieces working "
-                     f"loose rather than a collapse (a batch does not remove loose blocks; "
-                     f"sweep.csv: moving_volume, small_mechanism)")
+                     f"loose rather than a collapse (sweep.csv: moving_volume, "
+                     f"small_mechanism)")
     for name, bars in result.tornado.items():
         top = ", ".join(f"{bar['path']} {bar['swing'] * 1e3:+.3g} mm" for bar in bars[:3])
         lines.append(f"tornado {name}: {top}")

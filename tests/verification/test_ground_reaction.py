@@ -18,6 +18,7 @@ Closed forms:
   that support pressure (jaxdem.solve), which the batch must reproduce.
 """
 
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -26,6 +27,7 @@ import numpy as np
 import pytest
 
 import jaxdem
+from jaxdem import grc as grc_module
 from jaxdem.cli import main
 from jaxdem.geometry import centroid, signed_area
 from jaxdem.grc import SupportLine, grc_scene, in_situ_pressure, intersect, inward
@@ -184,16 +186,26 @@ def test_bad_input_is_refused_naming_the_field(tmp_path, capsys, args, field):
     assert not out.exists()                              # refused before any computation
 
 
-def test_a_mechanism_no_larger_than_max_loose_volume_is_said_to_be_small():
-    """The roof wedge (2 m3/m) with ``solver.max_loose_volume`` 2.5: the same mechanism at
-    p = 0, now said to be small (pieces working loose, not a collapse)."""
+def test_a_wedge_that_falls_free_within_max_loose_volume_is_removed_as_a_single_solve_does():
+    """The roof wedge (2 m3/m) with ``solver.max_loose_volume`` 2.5: unsupported it falls
+    free and is small, so the batch removes it as a loose block and the level converges
+    (no mechanism), with the span's convergence of a single solve at p = 0 (which removes
+    it too) to 1e-9; a first mechanism that is small is said to be (the message)."""
     data = roof_wedge()
     data["solver"]["max_loose_volume"] = 2.5
     curve = jaxdem.ground_reaction(parse_scene(data), "opening", levels=2, monitor="roof")
-    m = curve.mechanism
-    assert curve.status == ["converged", "mechanism"] and m["pressure"] == 0.0
-    assert m["volume"] == pytest.approx(2.0, rel=1e-9) and m["small"] is True
-    assert "It is small (2 m3/m, no larger than solver.max_loose_volume)" in curve.message
+    assert curve.status == ["converged", "converged"] and curve.mechanism is None
+    solved = grc_scene(parse_scene(data), "opening")[0]
+    single = jaxdem.solve(solved, set={curve.parameter: 0.0})
+    assert single.converged and len(single.loose_blocks) == 1
+    assert single.loose_blocks[0]["volume"] == pytest.approx(2.0, rel=1e-9)
+    assert curve.monitors["span"][1] == pytest.approx(
+        single.monitors["span"]["convergence"], rel=1e-9)
+    small = dataclasses.replace(curve, mechanism=dict(
+        level=1, pressure=0.0, status="mechanism", moving_blocks=[7], message="",
+        volume=0.04, small=True))
+    assert "It is small (0.04 m3/m, no larger than solver.max_loose_volume)" in \
+        grc_module._message(small)
 
 
 def test_bad_input_is_refused_by_the_python_interface():
