@@ -208,7 +208,7 @@ class SweepResult:
         for name, v in self.batch.monitors.items():
             cols += [f"{name}.ux", f"{name}.uy"] if v.ndim == 2 else [name]
         return cols + ["stable", "converged", "status", "stopped_stage", "stopped_load_factor",
-                       "moving_volume", "small_mechanism"]
+                       "moving_volume", "small_mechanism", "loose_blocks"]
 
     def rows(self) -> list[dict]:
         """One dict per sample, keyed by :meth:`columns` (the table of sweep.csv)."""
@@ -227,7 +227,8 @@ class SweepResult:
                        status=b.status[i], stopped_stage=stop.get("stage", ""),
                        stopped_load_factor=stop.get("load_factor", float("nan")),
                        moving_volume=float(b.moving_volume[i]),
-                       small_mechanism=bool(b.small_mechanism[i]))
+                       small_mechanism=bool(b.small_mechanism[i]),
+                       loose_blocks=len(b.loose_blocks[i]))
             out.append(row)
         return out
 

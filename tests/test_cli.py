@@ -542,16 +542,16 @@ def test_sweep_to_csv_without_a_path_returns_the_text(tmp_path):
                         converged=np.array([True, False]), iterations=np.array([3, 9]),
                         timing={}, stopped=[None, {"stage": "loading", "load_factor": 0.5}],
                         moving_volume=np.array([0.0, 0.02]),
-                        small_mechanism=np.array([False, True]))
+                        small_mechanism=np.array([False, True]), loose_blocks=[[3, 4], []])
     result = SweepResult(variables=[Variable.parse("joints.j.kn=1e6:2e6")], method="grid",
                          seed=0, batch=batch, tornado={}, probability={}, mode="batched")
     text = result.to_csv()
     assert isinstance(text, str)
     assert text.splitlines() == [
         "sample,joints.j.kn,top.ux,top.uy,stable,converged,status,stopped_stage,"
-        "stopped_load_factor,moving_volume,small_mechanism",
-        "0,1000000.0,0.0,-0.001,True,True,converged,,nan,0.0,False",
-        "1,2000000.0,0.0,-0.0005,False,False,mechanism,loading,0.5,0.02,True",
+        "stopped_load_factor,moving_volume,small_mechanism,loose_blocks",
+        "0,1000000.0,0.0,-0.001,True,True,converged,,nan,0.0,False,2",
+        "1,2000000.0,0.0,-0.0005,False,False,mechanism,loading,0.5,0.02,True,0",
     ]
     path = result.to_csv(tmp_path / "sweep.csv")
     assert path.read_bytes().decode() == text  # the same CSV (csv.writer line ends)
@@ -587,13 +587,17 @@ def test_the_sweep_summary_says_where_the_samples_without_an_answer_stopped():
     assert not any("0.25" in line for line in lines)
     assert not any("small" in line for line in lines)
     # The mechanism's blocks together 0.02 m3/m, no larger than max_loose_volume: said so.
+    assert not any("loose" in line for line in lines)
     small = dataclasses.replace(batch, moving_volume=np.array([0.0, 0.0, 0.0, 0.02, 0.0]),
-                                small_mechanism=np.array([False, False, False, True, False]))
+                                small_mechanism=np.array([False, False, False, True, False]),
+                                loose_blocks=[[], [7, 8], [], [], []])
     result = dataclasses.replace(result, batch=small,
                                  probability=probability_of_instability(small))
     assert result.probability["small"] == 1
+    said = sweep_summary(result)
     assert ("1 of the 1 mechanisms are small: their moving blocks together no larger than "
-            "solver.max_loose_volume") in sweep_summary(result)
+            "solver.max_loose_volume") in said
+    assert "1 samples removed loose blocks that fell free" in said
 
 
 # --------------------------------------------------------------------------- --view

@@ -109,10 +109,10 @@ def test_the_table_says_where_each_sample_without_an_answer_stopped():
     rows = res.rows()
     assert [(r["stopped_stage"], r["stopped_load_factor"]) for r in rows] == [
         ("loading", 1.0), ("loading", 0.5)]
-    assert res.columns()[-4:] == ["stopped_stage", "stopped_load_factor", "moving_volume",
-                                  "small_mechanism"]
+    assert res.columns()[-5:] == ["stopped_stage", "stopped_load_factor", "moving_volume",
+                                  "small_mechanism", "loose_blocks"]
     assert res.batch.moving_volume == pytest.approx([1.0, 1.0], rel=1e-12)
-    assert res.to_csv().splitlines()[2].endswith(",mechanism,loading,0.5,1.0,False")
+    assert res.to_csv().splitlines()[2].endswith(",mechanism,loading,0.5,1.0,False,0")
 
 
 def test_sampling_methods():

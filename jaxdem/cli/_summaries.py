@@ -180,6 +180,10 @@ def sweep_summary(result: Any) -> str:
         lo, hi = pr["ci95"]
         lines.append(f"probability of instability {pr['p_unstable']:.3f} "
                      f"(95% interval {lo:.3f} to {hi:.3f}, {pr['decided']} samples)")
+    loose = sum(1 for ids in (b.loose_blocks or []) if ids)
+    if loose:
+        lines.append(f"{loose} samples removed loose blocks that fell free and ran the stage "
+                     f"again without them, as a single run does (sweep.csv: loose_blocks)")
     if pr.get("small"):
         lines.append(f"{pr['small']} of the {pr['unstable']} mechanisms are small: their moving "
                      f"blocks together no larger than solver.max_loose_volume, pieces working "
