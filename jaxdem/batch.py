@@ -584,12 +584,6 @@ class _BatchDriver:
                                  **({} if released is None else dict(released=released))))
         return bool(self.live.any())
 
-    def removes_loose(self, relaxed: bool) -> bool:
-        """Whether loose blocks are removed sample by sample: not where an excavation's
-        load is released over several stages (the release loads of the samples held in a
-        stage's second run would be those of its end)."""
-        return not relaxed
-
     def no_loose(self) -> np.ndarray:
         return np.zeros((self.C, self.model.n_blocks), bool)
 

@@ -187,7 +187,7 @@ def run(scene, model: Model, state: State, layout, data: Data, progress=None,
     # blocks falling free is run again from its start with them excavated in it (in a
     # batch, for the samples where they fell: jaxdem.batch).
     limit = loose_limit(scene) if scene.solver.loose_blocks == "remove" else None
-    if limit is not None and (limit <= 0.0 or not d.removes_loose(relaxed)):
+    if limit is not None and limit <= 0.0:
         limit = None
     for index, stage in enumerate(plan, 1):
         if d.status != Status.CONVERGED:
@@ -562,10 +562,6 @@ class _Driver:
         del self.records[saved["records"]:], self.history[saved["history"]:]
         del self.cuts[saved["cuts"]:]
         self.bolt_active = saved["bolt_active"].copy()
-
-    def removes_loose(self, relaxed: bool) -> bool:
-        """Whether this driver removes loose blocks (:func:`run`): a single solve does."""
-        return True
 
     def no_loose(self) -> np.ndarray:
         """The (N,) mask of no loose block, which :func:`run` fills stage by stage."""

@@ -339,15 +339,20 @@ def test_a_batch_says_which_of_its_mechanisms_are_small(limit, small):
         assert (p["unstable"], p["small"]) == (1, int(small))
 
 
-def test_a_batch_removes_each_samples_loose_blocks_as_a_single_solve_does():
+@pytest.mark.parametrize("release", [None, [0.4, 0.6]])
+def test_a_batch_removes_each_samples_loose_blocks_as_a_single_solve_does(release):
     """The tunnel with merging off, batched (one chunk of two samples): with no cohesion on
-    the smooth discontinuities the roof wedge's three pieces fall free in the heading,
-    with 500 kPa one piece; each sample removes its own, runs the stage again without
-    them and converges, as its single solve: the same blocks removed, the same
-    iterations, the span's convergence the same to 1e-9."""
+    the smooth discontinuities the roof wedge's three pieces fall free, with 500 kPa one
+    piece; each sample removes its own, runs the stage again without them and converges,
+    as its single solve: the same blocks removed, the same iterations, the span's
+    convergence the same to 1e-9. With the heading's load released at once (they fall in
+    the heading) and over two stages (``release``: in the bench)."""
     from jaxdem.batch import solve_batch
 
-    scene = _scene(_tunnel(), **{"domain.min_block_area": 0.0})
+    data = _tunnel()
+    if release is not None:
+        data["excavations"][0]["release"] = release
+    scene = _scene(data, **{"domain.min_block_area": 0.0})
     theta = np.array([[0.0], [500.0]])
     b = solve_batch(scene, ["joints.smooth.cohesion"], theta, chunk=2)
     assert b.status == ["converged", "converged"] and b.timing["chunk"] == 2
