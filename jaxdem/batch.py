@@ -31,6 +31,7 @@ import functools
 import os
 import threading
 import time
+import types
 
 import jax
 import jax.numpy as jnp
@@ -572,9 +573,12 @@ class _BatchDriver:
             for c in found:
                 self.moving[c] = moving_blocks(travel[c, :self.layout.n_rock], float(limit[c]))
                 # What free_falling reads once the stage is done (the sample's later
-                # increments are skipped, and their reports hold nothing of it).
-                self.found_in[c] = (travel[c], jax.tree.map(lambda x, c=c: np.asarray(x[c]),
-                                                            info.snapshot))
+                # increments are skipped, and their reports hold nothing of it): its
+                # contacts' blocks and states alone, in small types.
+                snap = info.snapshot
+                self.found_in[c] = (travel[c], types.SimpleNamespace(
+                    a=np.asarray(snap.a[c], np.int32), b=np.asarray(snap.b[c], np.int32),
+                    active=np.asarray(snap.active[c]), state=np.asarray(snap.state[c], np.int8)))
         for c in np.nonzero(act & (status != Status.CONVERGED.code))[0]:
             self.stopped[c] = dict(stage=stage, load_factor=k / n)
         self.status_of = np.where(act, status, self.status_of)
