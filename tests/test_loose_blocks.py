@@ -321,7 +321,7 @@ def test_a_batch_says_which_of_its_mechanisms_are_small(limit, small):
     its 30-degree base, batched and one solve after another (a sweep's loop): at 20 it
     slides (tan 20 < tan 30), a mechanism of 0.5 m3/m, small where max_loose_volume is
     1.0, not at 0.4; at 40 it holds (no mechanism, volume 0). The sweep's probability
-    counts the small one apart, and the GRC-style flag is the same in both paths."""
+    counts the small one apart, and both paths flag it alike."""
     from jaxdem.batch import solve_batch
     from jaxdem.sweep import probability_of_instability, solve_each
 
