@@ -212,7 +212,8 @@ def solve_batch(scene, params, theta, *, chunk: int | None = None, devices=None,
         v[~ok] = np.nan
     area = np.asarray(model.area)[:layout.n_rock]
     volume = np.array([mechanism_volume(m, area) for m in moving])
-    small = np.array([is_small(m, area, loose_limit(scene)) for m in moving], bool)
+    small_limit = loose_limit(scene)
+    small = np.array([is_small(m, area, small_limit) for m in moving], bool)
     return BatchResult(
         params=params, theta=theta, monitors=out_mon,
         status=[Status.of(s).label for s in status], stable=status != Status.MECHANISM.code,
