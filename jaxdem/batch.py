@@ -540,9 +540,8 @@ class _BatchDriver:
     def step(self, stage, k, n, loads, released=None):
         loads = loads[0]
         fn_jit = _increment_fn(self.devices)
-        act = self.live.copy()
         while True:
-            skip = jnp.asarray(~act)
+            skip = jnp.asarray(~self.live)
             t1 = time.perf_counter()
             fn, dt = compiled_program(fn_jit, self.model, self.fields, self.state, loads, skip,
                                       quick=self.quick)
@@ -553,7 +552,7 @@ class _BatchDriver:
                 status = np.asarray(info.status)
             self.compile_s += dt
             self.solve_s += time.perf_counter() - t1 - dt
-            over = (status == Status.CAPACITY_OVERFLOW.code) & act
+            over = (status == Status.CAPACITY_OVERFLOW.code) & self.live
             if not over.any():
                 break
             self.model = model_mod.grown(self.model,
@@ -565,8 +564,8 @@ class _BatchDriver:
             if need > cap:
                 self.state = _grow(self.state, model_mod.bucket(max(2 * cap, need)))
         self.state, self.info = new, info
-        self.iterations += np.where(act, np.asarray(info.iterations), 0)
-        found = np.nonzero(act & (status == Status.MECHANISM.code))[0]
+        self.iterations += np.where(self.live, np.asarray(info.iterations), 0)
+        found = np.nonzero(self.live & (status == Status.MECHANISM.code))[0]
         if found.size:
             travel = np.asarray(info.travel)
             limit = np.broadcast_to(np.asarray(self.fields.get(
@@ -580,10 +579,10 @@ class _BatchDriver:
                 self.found_in[c] = (travel[c], types.SimpleNamespace(
                     a=np.asarray(snap.a[c], np.int32), b=np.asarray(snap.b[c], np.int32),
                     active=np.asarray(snap.active[c]), state=np.asarray(snap.state[c], np.int8)))
-        for c in np.nonzero(act & (status != Status.CONVERGED.code))[0]:
+        for c in np.nonzero(self.live & (status != Status.CONVERGED.code))[0]:
             self.stopped[c] = dict(stage=stage, load_factor=k / n)
-        self.status_of = np.where(act, status, self.status_of)
-        self.live &= ~act | (status == Status.CONVERGED.code)
+        self.status_of = np.where(self.live, status, self.status_of)
+        self.live &= status == Status.CONVERGED.code
         self.records.append(dict(stage=stage, step=k, load_factor=k / n,
                                  live=int(self.live.sum()),
                                  **({} if released is None else dict(released=released))))
@@ -600,10 +599,9 @@ class _BatchDriver:
                     moving=list(self.moving), stopped=list(self.stopped),
                     bolt_active=self.bolt_active.copy(), records=len(self.records))
 
-    def restore(self, saved: dict, loose=None) -> None:
+    def restore(self, saved: dict) -> None:
         """Back to a :meth:`checkpoint`, every sample (the model keeps any capacity grown
-        since); ``loose`` (C, N), the blocks found falling free, is :func:`jaxdem.solver.run`'s
-        to remove."""
+        since); :func:`jaxdem.solver.run` then removes each sample's loose blocks."""
         self.state, self.info = saved["state"], saved["info"]
         self.live, self.status_of = saved["live"].copy(), saved["status_of"].copy()
         self.iterations = saved["iterations"].copy()

@@ -651,7 +651,6 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
     travel = np.asarray(info.travel)[:nr]
     max_disp = float(model.max_displacement)
     limit = np.asarray(model.travel_limit, float)
-    group = np.arange(limit.shape[0])
     if status == Status.MECHANISM:
         # Blocks that moved together had their group's limit (group_limits).
         limit, group = (np.asarray(x) for x in _group_limits(model, info.snapshot, info.travel))

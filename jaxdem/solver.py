@@ -202,7 +202,7 @@ def run(scene, model: Model, state: State, layout, data: Data, progress=None,
             if found is None or not (found & ~loose).any():
                 break
             found &= ~loose
-            d.restore(start, found)
+            d.restore(start)
             d.record_loose(found, stage["name"])
             loose |= found
         base, pending = base + pending + now["support"], zero
@@ -553,10 +553,8 @@ class _Driver:
                     bolt_active=self.bolt_active.copy(), approximate=self.approximate,
                     cuts=len(self.cuts))
 
-    def restore(self, saved: dict, loose=None) -> None:
-        """Back to a :meth:`checkpoint` (the model keeps any capacity grown since); ``loose``
-        (the blocks found falling free, for which the stage is run again) is a batch's
-        business (:class:`jaxdem.batch._BatchDriver`)."""
+    def restore(self, saved: dict) -> None:
+        """Back to a :meth:`checkpoint` (the model keeps any capacity grown since)."""
         self.state, self.dstate, self.info = saved["state"], saved["dstate"], saved["info"]
         self.status, self.approximate = saved["status"], saved["approximate"]
         del self.records[saved["records"]:], self.history[saved["history"]:]
