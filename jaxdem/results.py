@@ -22,7 +22,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdem import geometry
-from jaxdem.core.kinematics import bolt_geometry, group_limits, rotate_vectors, strain_times
+from jaxdem.core.kinematics import (
+    MOVING,
+    bolt_geometry,
+    group_limits,
+    rotate_vectors,
+    strain_times,
+)
 from jaxdem.core.model import TRAVEL_FLOOR
 from jaxdem.core.state import OPEN, SLIP
 from jaxdem.core.status import IMBALANCE_FACTOR, LARGE_SLIP, OVERLAP_TOL, STRENGTH_TOL, Status
@@ -457,10 +463,10 @@ def unbalanced_blocks(info, tol: float, centroids) -> list[dict[str, Any]]:
 
 
 def moving_blocks(travel, max_displacement: float) -> list[int]:
-    """The blocks of a mechanism: those that travelled more than a tenth of
-    ``solver.max_displacement`` in the increment that found it (``travel``: (n,) m, the
-    rock blocks' path lengths)."""
-    return [int(i) for i in np.nonzero(np.asarray(travel) > 0.1 * max_displacement)[0]]
+    """The blocks of a mechanism: those that travelled more than
+    :data:`jaxdem.core.kinematics.MOVING` (a tenth) of ``solver.max_displacement`` in the
+    increment that found it (``travel``: (n,) m, the rock blocks' path lengths)."""
+    return [int(i) for i in np.nonzero(np.asarray(travel) > MOVING * max_displacement)[0]]
 
 
 _group_limits = jax.jit(group_limits)

@@ -29,7 +29,7 @@ from jaxdem.config import float64
 from jaxdem.core import model as model_mod
 from jaxdem.core.compile_cache import COMPILE_TIMES, QUICK_WORK, compiled_program, prefetch
 from jaxdem.core.increment import bounded_factorisations, increment, increment_tangent
-from jaxdem.core.kinematics import connected_groups
+from jaxdem.core.kinematics import MOVING, connected_groups
 from jaxdem.core.loads import in_situ_preload, make_loads, release_forces_jit
 from jaxdem.core.sensitivities import STATE_FLOATS, preload_tangent, release_with_tangent
 from jaxdem.core.state import OPEN, Loads, Model, State, grow_capacity
@@ -427,15 +427,15 @@ def falling_free(model: Model, layout, travel, snap, alive, limit: float):
     else None: ``travel`` (N,) each block's path in the increment that found it (m),
     ``snap`` its contacts at the end, ``alive`` (N,) the blocks still there.
 
-    Moving: travelled more than a tenth of ``max_displacement`` in the increment (as
-    ``Result.moving_blocks``). Free: no closed contact (stuck or slipping) joins a
-    moving block to one that is not moving, or to a boundary. Small: each group of
-    moving blocks in closed contact with each other has an area of at most ``limit``
-    (m2, m3 per m of tunnel).
+    Moving: travelled more than :data:`jaxdem.core.kinematics.MOVING` (a tenth) of
+    ``max_displacement`` in the increment (as ``Result.moving_blocks``). Free: no closed
+    contact (stuck or slipping) joins a moving block to one that is not moving, or to a
+    boundary. Small: each group of moving blocks in closed contact with each other has an
+    area of at most ``limit`` (m2, m3 per m of tunnel).
     """
     nr, N = layout.n_rock, model.n_blocks
     moving = np.zeros(N, bool)
-    moving[:nr] = np.asarray(travel)[:nr] > 0.1 * float(model.max_displacement)
+    moving[:nr] = np.asarray(travel)[:nr] > MOVING * float(model.max_displacement)
     moving &= np.asarray(alive)
     if not moving.any():
         return None

@@ -24,6 +24,13 @@ import jax.numpy as jnp
 
 from jaxdem.core.state import Model, Snapshot, State
 
+#: A block of a mechanism moves: its path in the increment that found it passed this share
+#: of ``solver.max_displacement`` (the median block size where the scene leaves it out).
+#: One rule for the blocks a result names (:func:`jaxdem.results.moving_blocks`), those
+#: that share a travel limit (:func:`group_limits`) and those removed as loose
+#: (:func:`jaxdem.solver.falling_free`).
+MOVING = 0.1
+
 
 def cross(r, v):
     return r[..., 0] * v[..., 1] - r[..., 1] * v[..., 0]
@@ -249,14 +256,14 @@ def group_limits(model: Model, snap: Snapshot, travel):
     ``max_displacement`` out; a wedge cut into several cells that slides as one must not
     be a mechanism once its smallest cell has moved that cell's size, but once the wedge
     has moved the wedge's. Moving: a free block whose path in the increment (``travel``)
-    passed a tenth of ``max_displacement`` (as :func:`jaxdem.results.moving_blocks` names
-    them); together: joined through slots of the contact list (``snap.active``: within
+    passed :data:`MOVING` of ``max_displacement`` (as :func:`jaxdem.results.moving_blocks`
+    names them); together: joined through slots of the contact list (``snap.active``: within
     the detection margin) between moving blocks. Each group's limit is the size of its
     area together, sqrt(sum area), between ``model.travel_range`` (so the group of one
     block has its own limit, and every limit is ``max_displacement`` where the scene
     gives it)."""
     N = model.n_blocks
-    moving = model.free & (travel > 0.1 * model.max_displacement)
+    moving = model.free & (travel > MOVING * model.max_displacement)
     lab = connected_groups(moving, snap.a, snap.b, snap.active)
     group_area = jax.ops.segment_sum(jnp.where(moving, model.area, 0.0), lab, N + 1)
     shared = jnp.clip(jnp.sqrt(group_area[lab]), *model.travel_range)
