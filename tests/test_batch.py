@@ -297,6 +297,34 @@ def test_float32_batch_matches_float64(tunnel):
     np.testing.assert_allclose(single.monitors["span"], double.monitors["span"], rtol=1e-3)
 
 
+def test_a_chunk_on_the_sparse_path_solves_each_sample_with_its_own_contacts():
+    """Four samples in one chunk on the sparse path (KLU inside the program), the
+    loose-roof tunnel (tests/data/loose_roof_tunnel.toml, 183 blocks) at four cohesions of
+    its two joint sets: their contacts, so the sparsity patterns of their matrices,
+    differ once bonds fail. Each sample is its single solve: the same status, loose blocks
+    removed and Newton iterations, the span's convergence to 1e-9. sparsax's own vmap rule
+    solves a batch with the first member's pattern: three of these samples were
+    mechanisms (two in the initial state) where their single solves converge."""
+    pytest.importorskip("sparsax")
+    import tomllib
+
+    data = tomllib.loads((ROOT / "tests" / "data" / "loose_roof_tunnel.toml").read_text())
+    scene = jaxdem.load_scene(data, set={"domain.min_block_area": 0.0,
+                                         "joints.smooth.cohesion": 500.0,
+                                         "solver.linear_solver": "sparse"})
+    params = ["joints.set1.cohesion", "joints.set2.cohesion"]
+    theta = np.array([[0.0, 0.0], [0.0, 500.0], [500.0, 0.0], [500.0, 500.0]])
+    b = solve_batch(scene, params, theta, chunk=4)
+    assert b.timing["chunk"] == 4
+    for i, row in enumerate(theta):
+        single = jaxdem.solve(scene, set=dict(zip(params, row, strict=True)))
+        assert (b.status[i], single.status) == ("converged", "converged")
+        assert b.loose_blocks[i] == [x["id"] for x in single.loose_blocks]
+        assert b.iterations[i] == sum(sum(s["iterations"]) for s in single.stages)
+        assert b.monitors["span"][i] == pytest.approx(single.monitors["span"]["convergence"],
+                                                      rel=1e-9)
+
+
 def test_threads_that_free_sparse_factorisations_do_not_disturb_each_other():
     """Two threads solve samples one at a time on the sparse path (CHOLMOD, and GMRES on
     its factor where the slip tangent is taken), and each frees sparsax's patterns and

@@ -340,9 +340,10 @@ def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True,
     """(K_t + eps M)^-1 R by a sparse direct solve inside the compiled program.
 
     SuiteSparse through sparsax's XLA FFI calls, so that the program is one XLA
-    executable (stored and loaded like any other, a vmapped batch solved in one native
-    call): CHOLMOD (supernodal Cholesky) where the iteration matrix is symmetric
-    positive definite beyond rounding; for the slip tangent (``symmetric`` False, the
+    executable (stored and loaded like any other; a vmapped batch's members solved one
+    after another, each with its own pattern: :func:`_lu_each_lane`): CHOLMOD
+    (supernodal Cholesky) where the iteration matrix is symmetric positive definite
+    beyond rounding; for the slip tangent (``symmetric`` False, the
     symmetric ``terms`` plus the ``coupling``) GMRES preconditioned by CHOLMOD's factor
     of its symmetric part (:func:`_slip_gmres`), KLU (LU) of the whole where that does
     not converge; KLU alone for a scene with bolts (their geometric stiffness), float32,
@@ -370,6 +371,9 @@ def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True,
                               jnp.asarray(symmetric), vmap_method="sequential")
         return x.reshape(R.shape)
     b64 = rhs.astype(jnp.float64)
+    if model.lanes is not None:
+        x = _lu_each_lane(sparsax)(jnp.asarray(active), *coo_of_blocks(model, *whole()), b64)
+        return x.astype(R.dtype).reshape(R.shape)
     # CHOLMOD stops the whole program where its matrix is not positive definite, so it
     # only gets what :func:`_lu_alone` lets through.
     if _lu_alone(model, R.dtype):
@@ -396,6 +400,47 @@ def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True,
 
         x = jax.lax.cond(jnp.asarray(symmetric), cholesky, slip)
     return x.astype(R.dtype).reshape(R.shape)
+
+
+_LU_EACH_LANE: dict = {}
+
+
+def _lu_each_lane(sparsax):
+    """``lu(active, Ai, Aj, Ax, b)``: sparsax's KLU solve of A x = b, and under a batch's
+    vmap each sample's own, one after another, skipped (x = 0) where ``active`` is False.
+
+    sparsax's own rule for vmap solves the whole batch in one native call with the
+    sparsity pattern of its first member (its contract: the pattern is shared, only the
+    values vary; "passing them silently uses the first"). The samples of a batch have
+    their own contacts, so their own patterns: solved with the first sample's, a sample
+    whose contacts differ got the wrong step (the loose-roof tunnel's sweep in chunks of
+    four on the sparse path: three mechanisms where each sample's own solve converges,
+    tests/test_batch.py). Here each sample's matrix is factorised with its own pattern (its
+    analysis cached by sparsax as any pattern's), and a sample whose Newton loop has ended
+    costs nothing.
+    """
+    lu = _LU_EACH_LANE.get(id(sparsax))
+    if lu is not None:
+        return lu
+
+    @jax.custom_batching.custom_vmap
+    def lu(active, Ai, Aj, Ax, b):
+        return sparsax.lu_solve(Ai, Aj, Ax, b)
+
+    @lu.def_vmap
+    def _each(axis_size, in_batched, *args):
+        args = tuple(x if batched else jnp.broadcast_to(x, (axis_size,) + x.shape)
+                     for x, batched in zip(args, in_batched, strict=True))
+
+        def one(member):
+            active, Ai, Aj, Ax, b = member
+            return jax.lax.cond(active, lambda: sparsax.lu_solve(Ai, Aj, Ax, b),
+                                lambda: jnp.zeros_like(b))
+
+        return jax.lax.map(one, args), True
+
+    _LU_EACH_LANE[id(sparsax)] = lu
+    return lu
 
 
 #: The slip tangent's GMRES (:func:`_slip_gmres`): at most this many iterations (the

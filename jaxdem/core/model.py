@@ -532,7 +532,8 @@ def linear_solver_for(choice: str, unknowns: int, *, platform: str | None = None
       installed), 4 to 7 times faster than the iterative path at 2,000 to 10,000
       blocks on a 2-core CPU (measured with SuperLU), if with 1.5 times its memory.
       A batch (``batch=True``, solved under ``vmap``, jaxdem.batch) takes it from
-      ``_DENSE_UP_TO`` on: its members are factorised in one native call (KLU); on
+      ``_DENSE_UP_TO`` on: its members are factorised one after another (KLU, each
+      with its own contacts' pattern: :func:`jaxdem.core._linsolve._lu_each_lane`); on
       the 492-block tunnel of bench_scaling.py a batch of 8 took 0.25 s a sample
       with SuperLU one member after another against 0.44 with "cg" and 0.60 with
       "dense" (0.31 for a loop of single solves);
