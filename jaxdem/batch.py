@@ -475,6 +475,18 @@ def _release_lanes(centroid, snap, removed, ndof):
     return jax.vmap(lambda c, s, r: release_forces(c, s, r, ndof))(centroid, snap, removed)
 
 
+@jax.jit
+def _lanes_where(mask, a, b):
+    """The pytree ``a`` on the lanes (samples) where ``mask`` (C,), ``b`` on the others.
+    A leaf of ``a`` smaller than ``b``'s (a report's contacts, whose places grew in
+    between) is padded with zeros: inactive contacts."""
+    def pick(x, y):
+        x = jnp.pad(x, [(0, m - s) for s, m in zip(x.shape, y.shape, strict=True)])
+        return jnp.where(mask.reshape((-1,) + (1,) * (y.ndim - 1)), x, y)
+
+    return jax.tree.map(pick, a, b)
+
+
 def _grow(state, capacity: int):
     return jax.vmap(functools.partial(grow_capacity, capacity=capacity))(state)
 
@@ -488,10 +500,11 @@ class _BatchDriver:
     threading.Event), if given, is set once the increment's program is in hand.
 
     Loose blocks (README, "Loose blocks") as a single solve removes them: where a
-    sample's stage ends in a mechanism of small blocks falling free, the chunk runs the
-    stage again from its start (:meth:`restore`), that sample without them; the others
-    run it as before, to the same answer (each sample's solve is its own in the batched
-    program). ``loose`` holds each sample's removed blocks.
+    sample's stage ends in a mechanism of small blocks falling free, that sample runs the
+    stage again from its start without them (:meth:`again`); the others keep their end of
+    the stage and sit the rerun out (``held``: skipped by the batched program, as a
+    sample that failed is, but still going). ``loose`` holds each sample's removed
+    blocks.
     """
 
     def __init__(self, model, fields, state, layout, data: Data, devices, quick=False,
@@ -507,6 +520,10 @@ class _BatchDriver:
         self.loose: list = [[] for _ in range(C)]  # each sample's blocks removed as loose
         self.found_in: list = [None] * C  # (travel, snapshot) of each sample's mechanism
         self.started = np.ones(C, bool)  # the samples that run the current stage
+        self.held = np.zeros(C, bool)  # the samples that sit out a stage's rerun (again)
+        # Their end of the stage, (mask, state, info), for step to put back: the state
+        # once, at the rerun's first increment (then None), the report at each.
+        self.kept = None
         self.stopped: list = [None] * C  # where each sample that failed stopped
         self.ref = self.dref = self.dstate = self.info = None
         self.records: list = []
@@ -540,8 +557,16 @@ class _BatchDriver:
     def step(self, stage, k, n, loads, released=None):
         loads = loads[0]
         fn_jit = _increment_fn(self.devices)
+        if self.kept is not None and self.kept[1] is not None:
+            # The rerun's first increment: the samples that sit it out are back where their
+            # stage ended (the stage's loads, released forces included, were worked out
+            # from its start, as for every sample); skipped, they stay there.
+            keep, end_state, end_info = self.kept
+            self.state = _lanes_where(keep, end_state, self.state)
+            self.kept = (keep, None, end_info)
+        running = self.live & ~self.held
         while True:
-            skip = jnp.asarray(~self.live)
+            skip = jnp.asarray(~running)
             t1 = time.perf_counter()
             fn, dt = compiled_program(fn_jit, self.model, self.fields, self.state, loads, skip,
                                       quick=self.quick)
@@ -552,7 +577,7 @@ class _BatchDriver:
                 status = np.asarray(info.status)
             self.compile_s += dt
             self.solve_s += time.perf_counter() - t1 - dt
-            over = (status == Status.CAPACITY_OVERFLOW.code) & self.live
+            over = (status == Status.CAPACITY_OVERFLOW.code) & running
             if not over.any():
                 break
             self.model = model_mod.grown(self.model,
@@ -563,9 +588,12 @@ class _BatchDriver:
             cap = self.state.capacity
             if need > cap:
                 self.state = _grow(self.state, model_mod.bucket(max(2 * cap, need)))
+        if self.kept is not None:
+            # A skipped sample's report holds nothing: theirs is the stage's last.
+            info = _lanes_where(self.kept[0], self.kept[2], info)
         self.state, self.info = new, info
-        self.iterations += np.where(self.live, np.asarray(info.iterations), 0)
-        found = np.nonzero(self.live & (status == Status.MECHANISM.code))[0]
+        self.iterations += np.where(running, np.asarray(info.iterations), 0)
+        found = np.nonzero(running & (status == Status.MECHANISM.code))[0]
         if found.size:
             travel = np.asarray(info.travel)
             limit = np.broadcast_to(np.asarray(self.fields.get(
@@ -579,36 +607,53 @@ class _BatchDriver:
                 self.found_in[c] = (travel[c], types.SimpleNamespace(
                     a=np.asarray(snap.a[c], np.int32), b=np.asarray(snap.b[c], np.int32),
                     active=np.asarray(snap.active[c]), state=np.asarray(snap.state[c], np.int8)))
-        for c in np.nonzero(self.live & (status != Status.CONVERGED.code))[0]:
+        for c in np.nonzero(running & (status != Status.CONVERGED.code))[0]:
             self.stopped[c] = dict(stage=stage, load_factor=k / n)
-        self.status_of = np.where(self.live, status, self.status_of)
-        self.live &= status == Status.CONVERGED.code
+        self.status_of = np.where(running, status, self.status_of)
+        self.live &= self.held | (status == Status.CONVERGED.code)
         self.records.append(dict(stage=stage, step=k, load_factor=k / n,
                                  live=int(self.live.sum()),
                                  **({} if released is None else dict(released=released))))
-        return bool(self.live.any())
+        return bool((self.live & ~self.held).any())
 
     def no_loose(self) -> np.ndarray:
         return np.zeros((self.C, self.model.n_blocks), bool)
 
     def checkpoint(self) -> dict:
-        """The samples' state at the start of a stage, to run it again (:meth:`restore`)."""
+        """The samples' state at the start of a stage, to run it again (:meth:`again`)."""
         self.started = self.live.copy()  # the samples that run this stage
+        self.held[:], self.kept = False, None
         return dict(state=self.state, info=self.info, live=self.live.copy(),
                     status_of=self.status_of.copy(), iterations=self.iterations.copy(),
                     moving=list(self.moving), stopped=list(self.stopped),
                     bolt_active=self.bolt_active.copy(), records=len(self.records))
 
-    def restore(self, saved: dict) -> None:
-        """Back to a :meth:`checkpoint`, every sample (the model keeps any capacity grown
-        since); :func:`jaxdem.solver.run` then removes each sample's loose blocks."""
+    def again(self, saved: dict, found) -> None:
+        """Back to the stage's :meth:`checkpoint` ``saved`` for the samples whose loose blocks
+        were ``found`` ((C, N) masks), which :func:`jaxdem.solver.run` then removes and runs
+        the stage again for (the model keeps any capacity grown since). The other samples
+        keep where the stage ended (their state, report, outcome and iterations) and sit the
+        rerun out: ``held`` where still going (they go on with the next stage), skipped
+        either way, so a rerun costs what the samples that run it cost."""
+        redo = np.asarray(found).any(axis=1)
+        keep = ~redo
+        end_state, end_info, end_live = self.state, self.info, self.live.copy()
+        end_status, end_iterations = self.status_of.copy(), self.iterations.copy()
+        end_lists = (list(self.moving), list(self.stopped), list(self.found_in))
         self.state, self.info = saved["state"], saved["info"]
-        self.live, self.status_of = saved["live"].copy(), saved["status_of"].copy()
-        self.iterations = saved["iterations"].copy()
-        self.moving, self.stopped = list(saved["moving"]), list(saved["stopped"])
-        self.found_in = [None] * self.C
+        if self.state.capacity < end_state.capacity:  # grown in the stage
+            self.state = _grow(self.state, end_state.capacity)
+        self.live = np.where(keep, end_live, saved["live"])
+        self.status_of = np.where(keep, end_status, saved["status_of"])
+        self.iterations = np.where(keep, end_iterations, saved["iterations"])
+        self.moving, self.stopped, self.found_in = (
+            [e if k else s for e, s, k in zip(end, start, keep, strict=True)]
+            for end, start in zip(end_lists, (saved["moving"], saved["stopped"],
+                                              [None] * self.C), strict=True))
         self.bolt_active = saved["bolt_active"].copy()
         del self.records[saved["records"]:]
+        self.held = keep & end_live
+        self.kept = (jnp.asarray(keep), end_state, end_info)
 
     def record_loose(self, found, stage: str) -> None:
         for c, row in enumerate(np.asarray(found)):

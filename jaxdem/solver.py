@@ -202,7 +202,7 @@ def run(scene, model: Model, state: State, layout, data: Data, progress=None,
             if found is None or not (found & ~loose).any():
                 break
             found &= ~loose
-            d.restore(start)
+            d.again(start, found)
             d.record_loose(found, stage["name"])
             loose |= found
         base, pending = base + pending + now["support"], zero
@@ -552,6 +552,11 @@ class _Driver:
                     records=len(self.records), history=len(self.history),
                     bolt_active=self.bolt_active.copy(), approximate=self.approximate,
                     cuts=len(self.cuts))
+
+    def again(self, saved: dict, found) -> None:
+        """Back to the stage's :meth:`checkpoint` ``saved``, to run it again without the
+        loose blocks ``found`` (N,) (:func:`run`)."""
+        self.restore(saved)
 
     def restore(self, saved: dict) -> None:
         """Back to a :meth:`checkpoint` (the model keeps any capacity grown since)."""

@@ -364,3 +364,52 @@ def test_a_batch_removes_each_samples_loose_blocks_as_a_single_solve_does(releas
         assert b.monitors["span"][i] == pytest.approx(r.monitors["span"]["convergence"],
                                                       rel=1e-9)
     assert b.loose_blocks[0] != b.loose_blocks[1]  # each sample its own
+
+
+@pytest.mark.parametrize("release", [None, [0.4, 0.6]])
+def test_a_batch_runs_a_stage_again_only_for_the_samples_that_lost_blocks(monkeypatch,
+                                                                         release):
+    """The tunnel with merging off and 500 kPa on the smooth discontinuities, batched (one
+    chunk of two samples) over the joint sets' cohesion: at 0 the roof piece 150 falls, at
+    500 kPa nothing falls (as their single solves). Only the first sample runs that stage
+    again: the second sits the rerun out (skipped by every batched increment of it: it
+    runs as many increments as its single solve), and each ends as its single solve
+    (blocks removed, iterations, the span's convergence to 1e-9). With the heading's load
+    released at once (the piece falls in the heading, and the second sample, held at the
+    heading's end, goes on with the bench) and over two stages (``release``: in the
+    bench)."""
+    from jaxdem import batch
+
+    ran = []  # each batched increment's lanes that ran (not skipped)
+    compiled = batch.compiled_program
+
+    def spy(fn_jit, *args, **kw):
+        fn, dt = compiled(fn_jit, *args, **kw)
+        if "mode" in kw:  # the in-situ preload
+            return fn, dt
+
+        def call(*a):
+            ran.append(~np.asarray(a[-1]))
+            return fn(*a)
+
+        return call, dt
+
+    monkeypatch.setattr(batch, "compiled_program", spy)
+    data = _tunnel()
+    if release is not None:
+        data["excavations"][0]["release"] = release
+    scene = _scene(data, **{"domain.min_block_area": 0.0, "joints.smooth.cohesion": 500.0})
+    params = ["joints.set1.cohesion", "joints.set2.cohesion"]
+    theta = np.array([[0.0, 0.0], [500.0, 500.0]])
+    b = batch.solve_batch(scene, params, theta, chunk=2)
+    assert b.status == ["converged", "converged"] and b.loose_blocks == [[150], []]
+    increments = np.sum(ran, axis=0)
+    for i, row in enumerate(theta):
+        r = jaxdem.solve(scene, set=dict(zip(params, row, strict=True)))
+        assert r.status == "converged"
+        assert b.loose_blocks[i] == [x["id"] for x in r.loose_blocks]
+        assert b.iterations[i] == sum(sum(s["iterations"]) for s in r.stages)
+        assert b.monitors["span"][i] == pytest.approx(r.monitors["span"]["convergence"],
+                                                      rel=1e-9)
+        own = sum(len(s["iterations"]) for s in r.stages)
+        assert increments[i] == own if i == 1 else increments[i] > own
