@@ -16,6 +16,7 @@ gather/scatter of :mod:`jaxdem.core.kinematics`; used by the Newton iteration
 from __future__ import annotations
 
 import contextlib
+import functools
 import threading
 import time
 
@@ -402,9 +403,7 @@ def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True,
     return x.astype(R.dtype).reshape(R.shape)
 
 
-_LU_EACH_LANE: dict = {}
-
-
+@functools.cache
 def _lu_each_lane(sparsax):
     """``lu(active, Ai, Aj, Ax, b)``: sparsax's KLU solve of A x = b, and under a batch's
     vmap each sample's own, one after another, skipped (x = 0) where ``active`` is False.
@@ -419,10 +418,6 @@ def _lu_each_lane(sparsax):
     analysis cached by sparsax as any pattern's), and a sample whose Newton loop has ended
     costs nothing.
     """
-    lu = _LU_EACH_LANE.get(id(sparsax))
-    if lu is not None:
-        return lu
-
     @jax.custom_batching.custom_vmap
     def lu(active, Ai, Aj, Ax, b):
         return sparsax.lu_solve(Ai, Aj, Ax, b)
@@ -439,7 +434,6 @@ def _lu_each_lane(sparsax):
 
         return jax.lax.map(one, args), True
 
-    _LU_EACH_LANE[id(sparsax)] = lu
     return lu
 
 
