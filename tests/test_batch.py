@@ -325,6 +325,19 @@ def test_a_chunk_on_the_sparse_path_solves_each_sample_with_its_own_contacts():
                                                       rel=1e-9)
 
 
+def test_a_held_samples_report_is_padded_where_the_contacts_places_grew():
+    """A sample that sits out a stage's rerun (loose blocks elsewhere in its chunk) keeps
+    its last report; where the rerun grew the contacts' places, that report's per-slot
+    arrays are padded with zeros (inactive slots) to the new size, the others' taken as
+    they come (``jaxdem.batch._lanes_where``)."""
+    held = {"active": jnp.ones((2, 3), bool), "fn": jnp.full((2, 3), 5.0), "k": jnp.ones(2)}
+    new = {"active": jnp.zeros((2, 5), bool), "fn": jnp.full((2, 5), 7.0), "k": jnp.zeros(2)}
+    out = batch._lanes_where(jnp.array([True, False]), held, new)
+    np.testing.assert_array_equal(out["active"], [[1, 1, 1, 0, 0], [0, 0, 0, 0, 0]])
+    np.testing.assert_array_equal(out["fn"], [[5, 5, 5, 0, 0], [7, 7, 7, 7, 7]])
+    np.testing.assert_array_equal(out["k"], [1, 0])
+
+
 def test_threads_that_free_sparse_factorisations_do_not_disturb_each_other():
     """Two threads solve samples one at a time on the sparse path (CHOLMOD, and GMRES on
     its factor where the slip tangent is taken), and each frees sparsax's patterns and
