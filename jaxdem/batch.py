@@ -635,25 +635,26 @@ class _BatchDriver:
         keep where the stage ended (their state, report, outcome and iterations) and sit the
         rerun out: ``held`` where still going (they go on with the next stage), skipped
         either way, so a rerun costs what the samples that run it cost."""
-        redo = np.asarray(found).any(axis=1)
-        keep = ~redo
-        end_state, end_info, end_live = self.state, self.info, self.live.copy()
-        end_status, end_iterations = self.status_of.copy(), self.iterations.copy()
-        end_lists = (list(self.moving), list(self.stopped), list(self.found_in))
+        keep = ~np.asarray(found).any(axis=1)
+
+        def pick(end, start):  # per sample: its end of the stage where kept, else the start
+            if isinstance(end, np.ndarray):
+                return np.where(keep, end, start)
+            return [e if k else s for e, s, k in zip(end, start, keep, strict=True)]
+
+        self.held = keep & self.live
+        self.kept = (jnp.asarray(keep), self.state, self.info)
+        self.live = pick(self.live, saved["live"])
+        self.status_of = pick(self.status_of, saved["status_of"])
+        self.iterations = pick(self.iterations, saved["iterations"])
+        self.moving = pick(self.moving, saved["moving"])
+        self.stopped = pick(self.stopped, saved["stopped"])
+        self.found_in = pick(self.found_in, [None] * self.C)
         self.state, self.info = saved["state"], saved["info"]
-        if self.state.capacity < end_state.capacity:  # grown in the stage
-            self.state = _grow(self.state, end_state.capacity)
-        self.live = np.where(keep, end_live, saved["live"])
-        self.status_of = np.where(keep, end_status, saved["status_of"])
-        self.iterations = np.where(keep, end_iterations, saved["iterations"])
-        self.moving, self.stopped, self.found_in = (
-            [e if k else s for e, s, k in zip(end, start, keep, strict=True)]
-            for end, start in zip(end_lists, (saved["moving"], saved["stopped"],
-                                              [None] * self.C), strict=True))
+        if self.state.capacity < self.kept[1].capacity:  # grown in the stage
+            self.state = _grow(self.state, self.kept[1].capacity)
         self.bolt_active = saved["bolt_active"].copy()
         del self.records[saved["records"]:]
-        self.held = keep & end_live
-        self.kept = (jnp.asarray(keep), end_state, end_info)
 
     def record_loose(self, found, stage: str) -> None:
         for c, row in enumerate(np.asarray(found)):
