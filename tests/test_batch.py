@@ -336,8 +336,8 @@ def test_a_held_samples_report_is_padded_where_the_contacts_places_grew():
 
 
 def test_threads_that_free_sparse_factorisations_do_not_disturb_each_other():
-    """Two threads solve samples one at a time on the sparse path (CHOLMOD, and GMRES on
-    its factor where the slip tangent is taken), and each frees sparsax's patterns and
+    """Two threads solve samples one at a time on the sparse path (CHOLMOD, and KLU where
+    the slip tangent is taken), and each frees sparsax's patterns and
     factors after every increment, while the other may be between two of its solves:
     every sample is still its single solve (to round-off), and nothing is left in
     sparsax's cache."""

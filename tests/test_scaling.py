@@ -69,13 +69,15 @@ def test_sparse_direct_solve_agrees_with_dense_lu(tunnel_solutions):
         np.testing.assert_allclose(u_sp[:, cols], u_ref[:, cols], rtol=0, atol=1e-10 * scale)
 
 
-@pytest.mark.parametrize("path", ["cholesky", "gmres", "klu fallback"])
+@pytest.mark.parametrize("path", ["cholesky", "klu", "gmres", "klu fallback"])
 def test_sparse_solve_of_one_iteration_matches_dense_lu(path, monkeypatch):
     """One Newton matrix of the tunnel's first sub-step, solved by the sparse path and by
     the dense LU: 1e-10. Symmetric (CHOLMOD); with a slip coupling on a third of the
-    touching slots (GMRES preconditioned by CHOLMOD's factor of the symmetric part),
-    and the same where GMRES may take a single iteration, so that KLU answers. Where
-    GMRES has its full space it answers itself (the KLU fallback made NaN here)."""
+    touching slots: KLU of the whole (the tunnel has fewer unknowns than
+    ``SLIP_LU_UP_TO``: GMRES is not even traced), and, that bound lowered below the
+    tunnel's size, GMRES preconditioned by CHOLMOD's factor of the symmetric part, and
+    the same where GMRES may take a single iteration, so that KLU answers. Where GMRES
+    has its full space it answers itself (the KLU fallback made NaN here)."""
     from jaxdem.core import _linsolve
     from jaxdem.core._linsolve import _solve_sparse
 
@@ -93,6 +95,15 @@ def test_sparse_solve_of_one_iteration_matches_dense_lu(path, monkeypatch):
         assert int(third.sum()) > 10
         coupling = (sub.geo.a, sub.geo.b, sub.Bs, sub.Bn,
                     jnp.where(third, -0.6 * sub.prop.kn, 0.0))
+    if path == "klu":
+        assert mdl.n_blocks * mdl.ndof <= _linsolve.SLIP_LU_UP_TO
+
+        def no_gmres(*args):
+            raise AssertionError("GMRES traced for a scene with KLU's slip tangent")
+
+        monkeypatch.setattr(_linsolve, "_slip_gmres", no_gmres)
+    else:
+        monkeypatch.setattr(_linsolve, "SLIP_LU_UP_TO", 0)
     if path == "klu fallback":
         monkeypatch.setattr(_linsolve, "GMRES_MAX", 1)
     if path == "gmres":  # GMRES's own answer: the fallback would give NaN

@@ -347,8 +347,9 @@ def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True,
     beyond rounding; for the slip tangent (``symmetric`` False, the
     symmetric ``terms`` plus the ``coupling``) GMRES preconditioned by CHOLMOD's factor
     of its symmetric part (:func:`_slip_gmres`), KLU (LU) of the whole where that does
-    not converge; KLU alone for a scene with bolts (their geometric stiffness), float32,
-    a batch (where a choice would run both). On the 60 x 60 and 100 x 100 block
+    not converge or the scene has at most :data:`SLIP_LU_UP_TO` unknowns; KLU alone for
+    a scene with bolts (their geometric stiffness), float32, a batch (where a choice
+    would run both). On the 60 x 60 and 100 x 100 block
     grids of BENCHMARKS.md ("Sparse solve inside XLA") CHOLMOD factorised twice as
     fast as SciPy's SuperLU and KLU two to three times slower. Fill-in of a 2D contact
     graph is mild, so cost and memory grow about linearly with the number of blocks,
@@ -389,6 +390,9 @@ def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True,
 
     if coupling is None:
         x = cholesky()
+    elif model.n_blocks * model.ndof <= SLIP_LU_UP_TO:
+        x = jax.lax.cond(jnp.asarray(symmetric), cholesky,
+                         lambda: sparsax.lu_solve(*coo_of_blocks(model, *whole()), b64))
     else:
         def slip():
             # K's triplets for the fallback are formed here, outside _slip_gmres's cond:
@@ -441,6 +445,15 @@ def _lu_each_lane(sparsax):
 #: Krylov space's dimension, no restart), and the relative residual it stops at.
 GMRES_MAX = 40
 GMRES_RTOL = 1e-11
+#: Unknowns up to which the slip tangent is factorised by KLU whole rather than solved by
+#: GMRES (:func:`_solve_sparse`): there one costs what the other does (a slip solve of a
+#: grid-like matrix with a tenth of its springs coupled, new values each call: 3.2 ms
+#: against 3.7 at 768 unknowns, 11.8 against 11.2 at 2,028), and without GMRES the
+#: program is smaller (seed example 4 wet's increment compiled in 4.2-4.7 s against
+#: 4.8-4.9, BENCHMARKS.md, "Thirty-fourth session"). Above it, meshed rock's LU fills in
+#: more than a Cholesky factor: on seed example 2, 95-140 ms an LU against 31 ms a
+#: Cholesky factor and 2 a solve.
+SLIP_LU_UP_TO = 2000
 
 
 def _slip_gmres(model: Model, sparsax, sym, upper, coupling, b, fallback):
