@@ -381,6 +381,14 @@ def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True,
     if _lu_alone(model, R.dtype):
         x = sparsax.lu_solve(*coo_of_blocks(model, *whole()), b64)
         return x.astype(R.dtype).reshape(R.shape)
+    if coupling is not None and model.n_blocks * model.ndof <= SLIP_LU_UP_TO:
+        # One assembly for both: where symmetric the coupling's terms are zero, and K's
+        # blocks are the symmetric part's to the last bit (zeros added last).
+        blocks = whole()
+        x = jax.lax.cond(jnp.asarray(symmetric),
+                         lambda: sparsax.solve(*coo_of_blocks(model, *blocks, upper=True), b64),
+                         lambda: sparsax.lu_solve(*coo_of_blocks(model, *blocks), b64))
+        return x.astype(R.dtype).reshape(R.shape)
     a, b, B, k = terms
     sym = stiffness_blocks(model, sub, a, b, B, B, k, diag)
     upper = coo_of_blocks(model, *sym, upper=True)
@@ -390,9 +398,6 @@ def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True,
 
     if coupling is None:
         x = cholesky()
-    elif model.n_blocks * model.ndof <= SLIP_LU_UP_TO:
-        x = jax.lax.cond(jnp.asarray(symmetric), cholesky,
-                         lambda: sparsax.lu_solve(*coo_of_blocks(model, *whole()), b64))
     else:
         def slip():
             # K's triplets for the fallback are formed here, outside _slip_gmres's cond:
