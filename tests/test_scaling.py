@@ -119,6 +119,32 @@ def test_sparse_solve_of_one_iteration_matches_dense_lu(path, monkeypatch):
                                atol=1e-10 * scale)
 
 
+def test_small_scenes_secant_solve_is_the_same_with_its_slip_tangents_assembly():
+    """Below ``SLIP_LU_UP_TO`` the sparse path assembles K once, with the slip coupling's
+    terms, for both the secant's Cholesky and the slip tangent's LU. Where the iteration
+    is symmetric those terms are zero (no slot is coupled, as Newton passes them), and
+    the step must be the one of the symmetric terms alone, bit for bit: the bundled
+    scenes' iterations do not change with it."""
+    from jaxdem.core import _linsolve
+    from jaxdem.core._linsolve import _solve_sparse
+    from jaxdem.core._springs import slip_coupling
+
+    model, state, _ = model_mod.build(parse_scene(jointed_tunnel(water=False, bolts=False)))
+    loads = make_loads(model, model.f_ext)
+    mdl, sub, st0, _, _ = prepare_substep(model, state, loads)
+    assert mdl.n_blocks * mdl.ndof <= _linsolve.SLIP_LU_UP_TO
+    ev = evaluate(mdl, sub, jnp.zeros_like(loads.force), jnp.zeros_like(st0, bool), st0,
+                  st0, 0.0)
+    terms = stiffness_terms(mdl, sub, ev, False)
+    coupling = slip_coupling(sub, ev, jnp.asarray(False))
+    R = jnp.where(sub.free[:, None], 1.0, 0.0) * jnp.ones((mdl.n_blocks, mdl.ndof))
+    alone = jax.jit(lambda r: _solve_sparse(mdl, sub, terms, r))(R)
+    shared = jax.jit(lambda r: _solve_sparse(mdl, sub, terms, r, symmetric=jnp.asarray(True),
+                                             coupling=coupling))(R)
+    assert np.abs(np.asarray(alone)).max() > 0
+    np.testing.assert_array_equal(np.asarray(shared), np.asarray(alone))
+
+
 # The measurement of test_slip_solves_keep_no_factor_behind, run in a process of its own: in
 # the test's process other threads (programs compiled or loaded in the background for
 # other tests) allocate while it measures.
