@@ -69,6 +69,20 @@ def test_sparse_direct_solve_agrees_with_dense_lu(tunnel_solutions):
         np.testing.assert_allclose(u_sp[:, cols], u_ref[:, cols], rtol=0, atol=1e-10 * scale)
 
 
+def _tunnels_first_iteration():
+    """The small jointed tunnel's first sub-step, without water or bolt (a scene with bolts
+    takes KLU whatever the symmetry, jaxdem.core._linsolve): (model, sub-step data, its
+    evaluation at du = 0, the slots' states, the secant's terms, a right-hand side of ones
+    on the free blocks)."""
+    model, state, _ = model_mod.build(parse_scene(jointed_tunnel(water=False, bolts=False)))
+    loads = make_loads(model, model.f_ext)
+    mdl, sub, st0, _, _ = prepare_substep(model, state, loads)
+    ev = evaluate(mdl, sub, jnp.zeros_like(loads.force), jnp.zeros_like(st0, bool), st0,
+                  st0, 0.0)
+    R = jnp.where(sub.free[:, None], 1.0, 0.0) * jnp.ones((mdl.n_blocks, mdl.ndof))
+    return mdl, sub, ev, st0, stiffness_terms(mdl, sub, ev, False), R
+
+
 @pytest.mark.parametrize("path", ["cholesky", "klu", "gmres", "klu fallback"])
 def test_sparse_solve_of_one_iteration_matches_dense_lu(path, monkeypatch):
     """One Newton matrix of the tunnel's first sub-step, solved by the sparse path and by
@@ -81,13 +95,7 @@ def test_sparse_solve_of_one_iteration_matches_dense_lu(path, monkeypatch):
     from jaxdem.core import _linsolve
     from jaxdem.core._linsolve import _solve_sparse
 
-    # No bolt: a scene with bolts takes KLU whatever the symmetry (jaxdem.core._linsolve).
-    model, state, _ = model_mod.build(parse_scene(jointed_tunnel(water=False, bolts=False)))
-    loads = make_loads(model, model.f_ext)
-    mdl, sub, st0, _, _ = prepare_substep(model, state, loads)
-    ev = evaluate(mdl, sub, jnp.zeros_like(loads.force), jnp.zeros_like(st0, bool), st0,
-                  st0, 0.0)
-    terms = stiffness_terms(mdl, sub, ev, False)
+    mdl, sub, _, st0, terms, R = _tunnels_first_iteration()
     coupling = None
     if path != "cholesky":
         # -tan(phi) kn Bs Bn^T, as a slipping slot couples its shear to its normal force.
@@ -109,7 +117,6 @@ def test_sparse_solve_of_one_iteration_matches_dense_lu(path, monkeypatch):
     if path == "gmres":  # GMRES's own answer: the fallback would give NaN
         sparsax = _linsolve._sparsax()
         monkeypatch.setattr(sparsax, "lu_solve", lambda Ai, Aj, Ax, b: b * jnp.nan)
-    R = jnp.where(sub.free[:, None], 1.0, 0.0) * jnp.ones((mdl.n_blocks, mdl.ndof))
     x_dense = solve_dense(mdl, sub, terms, R, symmetric=coupling is None, coupling=coupling)
     x_sparse = jax.jit(lambda r: _solve_sparse(
         mdl, sub, terms, r, symmetric=jnp.asarray(coupling is None), coupling=coupling))(R)
@@ -129,15 +136,9 @@ def test_small_scenes_secant_solve_is_the_same_with_its_slip_tangents_assembly()
     from jaxdem.core._linsolve import _solve_sparse
     from jaxdem.core._springs import slip_coupling
 
-    model, state, _ = model_mod.build(parse_scene(jointed_tunnel(water=False, bolts=False)))
-    loads = make_loads(model, model.f_ext)
-    mdl, sub, st0, _, _ = prepare_substep(model, state, loads)
+    mdl, sub, ev, _, terms, R = _tunnels_first_iteration()
     assert mdl.n_blocks * mdl.ndof <= _linsolve.SLIP_LU_UP_TO
-    ev = evaluate(mdl, sub, jnp.zeros_like(loads.force), jnp.zeros_like(st0, bool), st0,
-                  st0, 0.0)
-    terms = stiffness_terms(mdl, sub, ev, False)
     coupling = slip_coupling(sub, ev, jnp.asarray(False))
-    R = jnp.where(sub.free[:, None], 1.0, 0.0) * jnp.ones((mdl.n_blocks, mdl.ndof))
     alone = jax.jit(lambda r: _solve_sparse(mdl, sub, terms, r))(R)
     shared = jax.jit(lambda r: _solve_sparse(mdl, sub, terms, r, symmetric=jnp.asarray(True),
                                              coupling=coupling))(R)
