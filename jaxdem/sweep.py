@@ -278,7 +278,8 @@ def sweep(scene, vary: Sequence[Variable | str] | Mapping, samples: int, *,
       method: "grid", "lhs" or "mc"; default "grid" when every variable is a
         range, else "lhs".
       seed: the random seed (same seed, same samples).
-      tornado: also solve the 1 + 2p one-at-a-time points of the tornado.
+      tornado: also solve the 1 + 2p one-at-a-time points of the tornado (those that
+        are not samples already: each point is solved once).
       chunk, devices, workers: see :func:`jaxdem.batch.solve_batch`.
       progress: optional callable (samples done, samples in all).
     Returns:
@@ -300,27 +301,55 @@ def sweep(scene, vary: Sequence[Variable | str] | Mapping, samples: int, *,
         method = "grid" if all(v.kind == "range" for v in variables) else "lhs"
     theta = draw(variables, samples, method, seed)
     check_values(scene, variables, theta)
-    extra = np.array([[v.tornado_points()[1] for v in variables]])
-    if tornado:
-        for j, v in enumerate(variables):
-            lo, _, hi = v.tornado_points()
-            for x in (lo, hi):
-                row = extra[0].copy()
-                row[j] = x
-                extra = np.vstack([extra, row])
-    everything = np.vstack([theta, extra]) if tornado else theta
+    everything = np.vstack([theta, tornado_rows(variables)]) if tornado else theta
+    # A point solved once however often it comes: a grid's ends (and, with an odd
+    # number of levels, its middle) are the tornado's points too.
+    distinct, where = distinct_rows(everything)
     try:
-        batch = solve_batch(scene, paths, everything, chunk=chunk, devices=devices,
+        batch = solve_batch(scene, paths, distinct, chunk=chunk, devices=devices,
                             workers=workers, progress=progress)
         mode = "batched"
     except NotSmooth:
-        batch = solve_each(scene, paths, everything, progress=progress)
+        batch = solve_each(scene, paths, distinct, progress=progress)
         mode = "loop"
     S = theta.shape[0]
-    main = _take(batch, slice(0, S))
-    bars = _tornado(variables, _take(batch, slice(S, None))) if tornado else {}
+    main = _take(batch, where[:S])
+    bars = _tornado(variables, _take(batch, where[S:])) if tornado else {}
     return SweepResult(variables=variables, method=method, seed=seed, batch=main,
                        tornado=bars, probability=probability_of_instability(main), mode=mode)
+
+
+def tornado_rows(variables: Sequence[Variable]) -> np.ndarray:
+    """The (1 + 2p, p) one-at-a-time points of the tornado: every variable at its base,
+    then each variable at its low and at its high point with the others at their base
+    (:meth:`Variable.tornado_points`)."""
+    base = np.array([v.tornado_points()[1] for v in variables])
+    rows = [base]
+    for j, v in enumerate(variables):
+        lo, _, hi = v.tornado_points()
+        for x in (lo, hi):
+            row = base.copy()
+            row[j] = x
+            rows.append(row)
+    return np.array(rows)
+
+
+def distinct_rows(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rows of ``theta`` (S, p) that differ, in the order they first come, and for
+    each row of ``theta`` the index of its row among them (equal values exactly: the
+    same parameters give the same solve)."""
+    _, first, inverse = np.unique(theta, axis=0, return_index=True, return_inverse=True)
+    order = np.argsort(first)
+    rank = np.empty_like(order)
+    rank[order] = np.arange(order.size)
+    return theta[first[order]], rank[inverse.reshape(-1)]
+
+
+def tornado_solves(variables: Sequence[Variable], theta: np.ndarray) -> int:
+    """How many solves the tornado adds to a sweep of the samples ``theta``: its points
+    that are not samples already (:func:`sweep` solves each point once)."""
+    with_tornado = np.vstack([theta, tornado_rows(variables)])
+    return len(distinct_rows(with_tornado)[0]) - len(distinct_rows(theta)[0])
 
 
 def solve_each(scene, params, theta, progress=None) -> BatchResult:
@@ -403,13 +432,15 @@ def _tornado(variables, batch: BatchResult) -> dict:
     return out
 
 
-def _take(batch: BatchResult, rows: slice) -> BatchResult:
+def _take(batch: BatchResult, rows: np.ndarray) -> BatchResult:
+    """The samples ``rows`` (indices, in their order, repeats allowed) of ``batch``."""
+    pick = lambda items: [items[i] for i in rows]  # noqa: E731
     return dataclasses.replace(
         batch, theta=batch.theta[rows], monitors={k: v[rows] for k, v in batch.monitors.items()},
-        status=batch.status[rows], stable=batch.stable[rows], converged=batch.converged[rows],
-        iterations=batch.iterations[rows], moving_blocks=batch.moving_blocks[rows],
-        stopped=batch.stopped[rows], moving_volume=batch.moving_volume[rows],
-        small_mechanism=batch.small_mechanism[rows], loose_blocks=batch.loose_blocks[rows])
+        status=pick(batch.status), stable=batch.stable[rows], converged=batch.converged[rows],
+        iterations=batch.iterations[rows], moving_blocks=pick(batch.moving_blocks),
+        stopped=pick(batch.stopped), moving_volume=batch.moving_volume[rows],
+        small_mechanism=batch.small_mechanism[rows], loose_blocks=pick(batch.loose_blocks))
 
 
 def check_values(scene, variables, theta) -> None:

@@ -521,6 +521,11 @@ def test_sweep_says_what_it_will_solve_before_starting(scene_file, tmp_path, cap
         main(["sweep", str(scene_file), "--vary", "joints.j.kn=1e6:1e7:log", "--samples", "16",
               "--method", "lhs", "--out", str(tmp_path / "s")])
     assert "sweep lhs: 16 samples (seed 0), plus 3 for the tornado" in capsys.readouterr().out
+    with pytest.raises(Started):  # a grid's ends are the tornado's: solved once
+        main(["sweep", str(scene_file), "--vary", "joints.j.kn=1e6:1e7:log", "--samples", "16",
+              "--out", str(tmp_path / "s")])
+    assert ("16 solves (--samples is the levels per parameter), plus 1 for the tornado (2 of "
+            "its 3 points are samples)") in capsys.readouterr().out
 
 
 def test_bad_vary_path_names_the_parameter_not_a_sample(scene_file, tmp_path, capsys):

@@ -2,6 +2,7 @@
 against a closed form, the tornado, the CSV, reproducibility and refusals."""
 
 import csv
+import importlib
 import math
 from pathlib import Path
 
@@ -11,9 +12,17 @@ from scenes import block_on_incline
 from scipy.special import ndtr
 
 import jaxdem
+from jaxdem.batch import solve_batch
 from jaxdem.cli import main
 from jaxdem.scene import SceneError, parse_scene
-from jaxdem.sweep import Variable, draw, probability_of_instability, sweep
+from jaxdem.sweep import (
+    Variable,
+    distinct_rows,
+    draw,
+    probability_of_instability,
+    sweep,
+    tornado_solves,
+)
 
 ALPHA = 30.0
 EXAMPLE = str(Path(__file__).resolve().parents[1] / "examples" / "block_on_incline.toml")
@@ -61,6 +70,42 @@ def test_tornado_is_one_at_a_time(incline):
     assert kn["swing"] == pytest.approx(kn["at_high"] - kn["at_low"])
     assert kn["quantity"] == "|u|"  # a point monitor: the tornado's axis says so
     assert res.method == "grid" and res.batch.theta.shape == (4, 2)
+
+
+def test_distinct_rows_keep_their_first_order_and_map_every_row():
+    theta = np.array([[2.0, 1.0], [1.0, 1.0], [2.0, 1.0], [3.0, 0.5], [1.0, 1.0]])
+    rows, where = distinct_rows(theta)
+    np.testing.assert_array_equal(rows, [[2.0, 1.0], [1.0, 1.0], [3.0, 0.5]])
+    np.testing.assert_array_equal(where, [0, 1, 0, 2, 1])
+    np.testing.assert_array_equal(rows[where], theta)
+
+
+def test_tornado_points_that_are_samples_are_solved_once(incline, monkeypatch):
+    """A grid of 3 levels holds a range's ends and middle, the tornado's three points: the
+    sweep solves 3 points, not 6, and the tornado reads the samples' own solves (its high
+    end is a single solve at the high point, as in the test above)."""
+    solved = []
+
+    def spy(scene, params, theta, **kwargs):
+        solved.append(np.array(theta))
+        return solve_batch(scene, params, theta, **kwargs)
+
+    sweep_module = importlib.import_module("jaxdem.sweep")  # jaxdem.sweep is also the function
+    monkeypatch.setattr(sweep_module, "solve_batch", spy)
+    variables = [Variable.parse("joints.base.kn=5e5:2e6")]
+    assert tornado_solves(variables, draw(variables, 3, "grid")) == 0
+    assert tornado_solves(variables, draw(variables, 4, "grid")) == 1  # the middle is new
+    res = sweep(incline, ["joints.base.kn=5e5:2e6"], 3)
+    assert len(solved) == 1
+    np.testing.assert_array_equal(solved[0][:, 0], [5e5, 1.25e6, 2e6])
+    u = np.linalg.norm(res.batch.monitors["block"], axis=1)
+    bar = res.tornado["block"][0]
+    assert (bar["at_low"], bar["at_base"], bar["at_high"]) == (u[0], u[1], u[2])
+    single = jaxdem.solve(incline, set={"joints.base.kn": 2e6})
+    assert bar["at_high"] == pytest.approx(
+        np.linalg.norm(single.monitors["block"]["displacement"]), rel=1e-9)
+    assert bar["at_low"] > bar["at_high"]  # a stiffer joint settles less
+    assert res.batch.theta.shape == (3, 1) and len(res.batch.status) == 3
 
 
 def test_reproducible_from_seed_and_same_table_as_cli(incline, tmp_path, friction_sweep):

@@ -179,19 +179,22 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     _check_out(out)
 
     from jaxdem.plots import plot_tornado
-    from jaxdem.sweep import Variable, draw, sweep
+    from jaxdem.sweep import Variable, draw, sweep, tornado_solves
 
     variables = [Variable.parse(v) for group in args.vary for v in group]
     method = args.method or ("grid" if all(v.kind == "range" for v in variables) else "lhs")
-    n = draw(variables, args.samples, method, args.seed).shape[0]
+    theta = draw(variables, args.samples, method, args.seed)
+    n = theta.shape[0]
     p = len(variables)
+    points, new = 1 + 2 * p, tornado_solves(variables, theta)
+    shared = "" if new == points else f" ({points - new} of its {points} points are samples)"
     print(f"{scene_name(scene, path, overrides)}: {scene_summary(scene)}")
     if method == "grid":
         how = (f"grid: {args.samples} levels x {plural(p, 'parameter')} = {n:,} solves "
                "(--samples is the levels per parameter)")
     else:
         how = f"{method}: {n:,} samples (seed {args.seed})"
-    print(f"sweep {how}, plus {1 + 2 * p} for the tornado; "
+    print(f"sweep {how}, plus {new} for the tornado{shared}; "
           + "; ".join(f"{v.path} {v.describe()}" for v in variables), flush=True)
     bar = SampleBar()
     from jaxdem.scene import SceneError
