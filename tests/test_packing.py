@@ -125,3 +125,25 @@ def test_each_pairs_places_hold_its_touching_slots_and_one_more_overflows():
     crowded[5:two_v] = False
     sub4 = dataclasses.replace(sub, geo=sub.geo._replace(active=jnp.asarray(crowded)))
     assert not bool(pack_slots(mdl, sub4, st0)[3])
+
+
+def test_touching_pairs_at_the_start_are_those_that_bear_or_meet():
+    """The estimate of the touching pairs (``model._touching``, which sizes the places):
+    a square resting on another (faces anti-parallel, overlapping) and one meeting it
+    corner to corner (faces anti-parallel, end to end: they come to touch as the blocks
+    settle) touch; one 0.5 m away does not (margin 0.1 m), nor one whose vertex is inside
+    the margin of a face's line but beyond its end."""
+    def square(x, y):
+        return [[x, y], [x + 1, y], [x + 1, y + 1], [x, y + 1]]
+
+    blocks = [square(0, 0), square(1, 0), square(1.5, 1.0), square(1, 1.05), square(-1.05, 1.5)]
+    verts = np.array(blocks, float)
+    nv = np.full(len(blocks), 4)
+    pairs = (np.array([0, 0, 1, 0, 0]), np.array([1, 2, 2, 3, 4]))
+    touching = model_mod._touching(verts, nv, pairs, 0.1, 1e-3)
+    # 0-1 side by side; 0-2 0.5 m apart; 1-2 (1.5, 1) rests on 1's top face; 0-3 corner
+    # to corner 0.05 m apart (within the margin, faces meeting end to end); 0-4 beyond
+    # the end of 0's top face, 0.05 m to the side of its left face's line but above it.
+    np.testing.assert_array_equal(touching, [True, False, True, True, False])
+    assert model_mod._touch_capacity(verts, nv, pairs, 0.1, 1e-3) == model_mod.bucket(
+        int(1.5 * 3) + 16)

@@ -361,6 +361,26 @@ def test_no_domain_gives_an_empty_rock_mass():
     assert generate(scene).pieces == []
 
 
+def test_a_scene_is_cut_once_and_each_caller_gets_its_own_copy(monkeypatch):
+    """The command line counts the blocks, the solver lays them out and the figures draw
+    them: one cut of the scene, and a copy for each (a change to one is not the next's)."""
+    from jaxdem.rockmass import _generate
+
+    cuts = []
+    cut = _generate._cut
+    monkeypatch.setattr(_generate, "_cut", lambda sc: cuts.append(sc) or cut(sc))
+    scene = rock_scene(outline=square(4.0), joints={"a": joint_set(0.0, 1.0)})
+    first = generate(scene)
+    first.pieces[0].vertices[:] = 0.0
+    first.pieces[0].edge_labels.clear()
+    again = generate(scene)
+    assert len(cuts) == 1
+    assert total_area(again) == pytest.approx(16.0, rel=1e-12)
+    assert len(again.pieces[0].edge_labels) == len(again.pieces[0].vertices)
+    other = rock_scene(outline=square(4.0), joints={"a": joint_set(0.0, 2.0)})
+    assert len(generate(other).pieces) == 2 and len(cuts) == 2  # another scene: its own cut
+
+
 def test_ten_thousand_blocks_generate_quickly():
     scene = rock_scene(
         outline=square(100.0), joints={"a": joint_set(0.0, 1.0), "b": joint_set(90.0, 1.0)}

@@ -655,7 +655,13 @@ def _initial_capacity(pairs) -> int:
 
 def _touch_capacity(verts, nv, pairs, margin, span_tol) -> int:
     """Places for the touching pairs (:func:`jaxdem.core._substep.pack_slots`): the
-    candidate pairs at the start that touch, half as many again, plus 16 (the size class).
+    candidate pairs at the start that touch (:func:`_touching`), half as many again, plus
+    16 (the size class)."""
+    return bucket(int(1.5 * int(np.sum(_touching(verts, nv, pairs, margin, span_tol)))) + 16)
+
+
+def _touching(verts, nv, pairs, margin, span_tol) -> np.ndarray:
+    """Whether each candidate pair (i, j) of ``pairs`` touches at the start, (P,) bool.
 
     Touching much as the narrow phase sees it, in NumPy and without its finer choices: a
     vertex of one block within the margin of a face of the other (and of its nearest
@@ -677,32 +683,39 @@ def _touch_capacity(verts, nv, pairs, margin, span_tol) -> int:
     normal = np.stack([tangent[..., 1], -tangent[..., 0]], -1)
     cos_parallel = math.cos(math.radians(2.0))
 
+    def along(rx, ry, u):  # (p, V, E) offsets from y's vertices, along y's faces' u (p, E, 2)
+        return rx * u[:, None, :, 0] + ry * u[:, None, :, 1]
+
     def touch(x, y):  # a vertex of x bears on a face of y
+        # Coordinates apart, (p, V, E) each: no (p, V, E, 2) array and no contraction
+        # over its last axis (seed example 3's 9,357 pairs: 330 -> 175 ms).
         p = np.arange(len(x))[:, None]
-        rel = verts[x][:, :, None, :] - verts[y][:, None, :, :]  # (p, V, E, 2)
-        dist = np.where(edge[y][:, None, :], np.einsum("pvek,pek->pve", rel, normal[y]),
-                        -np.inf)
+        vx, vy = verts[x], verts[y]
+        rx = vx[:, :, None, 0] - vy[:, None, :, 0]
+        ry = vx[:, :, None, 1] - vy[:, None, :, 1]
+        dist = np.where(edge[y][:, None, :], along(rx, ry, normal[y]), -np.inf)
         # The faces it may bear on: within the margin, and within the margin of its
         # nearest one.
         near = ((dist <= margin) & (dist >= dist.max(axis=-1, keepdims=True) - margin)
                 & (k < nv[x][:, None])[..., None])
-        t, L = tangent[y][:, None, :, :], length[y][:, None, :]
-        s = np.einsum("pvek,pvek->pve", rel, np.broadcast_to(t, rel.shape))
+        t, L = tangent[y], length[y][:, None, :]
+        s = along(rx, ry, t)
         bears = (s > span_tol) & (s < L - span_tol)
         for own, other in ((tangent[x], nxt[x]), (tangent[x][p, prev[x]], prev[x])):
-            rel1 = verts[x][p, other][:, :, None, :] - verts[y][:, None, :, :]
-            s1 = np.einsum("pvek,pvek->pve", rel1, np.broadcast_to(t, rel1.shape))
+            ox = vx[p, other]
+            s1 = along(ox[:, :, None, 0] - vy[:, None, :, 0], ox[:, :, None, 1] - vy[:, None, :, 1],
+                       t)
             # Overlapping, or meeting end to end (above).
             meet = (np.minimum(s, s1) <= L + span_tol) & (np.maximum(s, s1) >= -span_tol)
-            anti = np.einsum("pvk,pek->pve", own, tangent[y]) < -cos_parallel
+            anti = along(own[:, :, None, 0], own[:, :, None, 1], t) < -cos_parallel
             bears |= anti & meet
         return np.any(near & bears, axis=(1, 2))
 
     i, j = pairs
-    touching = sum(int(np.sum(touch(i[s:s + 10000], j[s:s + 10000])
-                              | touch(j[s:s + 10000], i[s:s + 10000])))
-                   for s in range(0, len(i), 10000))
-    return bucket(int(1.5 * touching) + 16)
+    return np.concatenate([np.zeros(0, bool)]
+                          + [touch(i[s:s + 10000], j[s:s + 10000])
+                             | touch(j[s:s + 10000], i[s:s + 10000])
+                             for s in range(0, len(i), 10000)])
 
 
 def _cell_capacity(verts, radius, big, margin) -> int:

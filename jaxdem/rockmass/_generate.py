@@ -4,6 +4,7 @@ returns the :class:`RockMass` of convex, labelled pieces."""
 from __future__ import annotations
 
 import math
+import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -103,6 +104,12 @@ def _refuse_sliver(
     )
 
 
+_GENERATED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+"""Each scene's rock mass, cut once while the scene lives: the command line counts the
+blocks before the solve, the solver lays them out and the figures draw them (seed example
+3's 1,292 pieces: 0.09-0.15 s a cut)."""
+
+
 def generate(scene: Scene) -> RockMass:
     """Cut the scene's domain into convex pieces (see the module docstring).
 
@@ -111,14 +118,25 @@ def generate(scene: Scene) -> RockMass:
         nothing to generate and the rock mass is empty.
 
     Returns:
-      :class:`RockMass` whose pieces tile the domain exactly (areas sum to its area).
+      :class:`RockMass` whose pieces tile the domain exactly (areas sum to its area): a
+      copy of the scene's (cut at the first call; a scene is immutable), the caller's to
+      change.
 
     Raises:
       SceneError: where near-coincident joint traces leave a sliver that cannot be merged.
     """
-    dom = scene.domain
-    if dom is None:
+    if scene.domain is None:
         return RockMass(pieces=[])
+    made = _GENERATED.get(scene)
+    if made is None:
+        made = _GENERATED[scene] = _cut(scene)
+    return RockMass(pieces=[Piece(p.vertices.copy(), p.material, p.excavation,
+                                  list(p.edge_labels)) for p in made.pieces])
+
+
+def _cut(scene: Scene) -> RockMass:
+    """:func:`generate`'s work, for a scene with a domain."""
+    dom = scene.domain
     outline = np.asarray(dom.outline, dtype=float)
     box = geometry.bbox(outline)
     size = float(math.hypot(box[2] - box[0], box[3] - box[1]))
