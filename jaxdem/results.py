@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdem import geometry
+from jaxdem.core.compile_cache import on_disk, run_stored
 from jaxdem.core.kinematics import (
     MOVING,
     bolt_geometry,
@@ -202,6 +203,7 @@ def jsonable(x: Any, finite: bool = False) -> Any:
 # Building a Result from the solver's final state (host, NumPy)
 
 
+@on_disk("material_points")
 @jax.jit
 def _material_points(centroid, rot, strain, blocks, offsets, weights):
     """Weighted mean over holders of c + (I + E) R(rot) offset: (n, H) blocks -> (n, 2) points."""
@@ -210,6 +212,7 @@ def _material_points(centroid, rot, strain, blocks, offsets, weights):
     return jnp.sum(weights[..., None] * p, axis=-2)
 
 
+@on_disk("material_moves")
 @jax.jit
 def _material_moves(u, rot, strain, blocks, offsets, weights):
     """The displacements of the same points since the start, u + (I + E) R(rot) r - r.
@@ -244,20 +247,20 @@ def _all_positions(layout, state) -> list[np.ndarray]:
     blocks = np.concatenate([np.asarray(m["blocks"], np.int32) for m in ms])
     offsets = np.concatenate([np.asarray(m["offsets"], float) for m in ms])
     weights = np.concatenate([np.asarray(m["weights"], float) for m in ms])
-    pts = np.asarray(_material_points(state.centroid, state.rot, state.strain,
-                                      jnp.asarray(blocks), jnp.asarray(offsets),
-                                      jnp.asarray(weights, state.centroid.dtype)))
+    put = jax.device_put  # not jnp.asarray: that compiles a program for each new shape
+    pts = np.asarray(run_stored(_material_points, state.centroid, state.rot, state.strain,
+                                put(blocks), put(offsets),
+                                put(weights.astype(state.centroid.dtype))))
     return np.split(pts, np.cumsum([len(m["points"]) for m in ms])[:-1])
 
 
 def _all_moves(layout, state) -> list[np.ndarray]:
     """Every monitor's material-point displacements since the start (:func:`_material_moves`)."""
     ms = list(layout.monitors.values())
-    cat = lambda k, dt: np.concatenate([np.asarray(m[k], dt) for m in ms])  # noqa: E731
-    moves = np.asarray(_material_moves(state.u, state.rot, state.strain,
-                                       jnp.asarray(cat("blocks", np.int32)),
-                                       jnp.asarray(cat("offsets", float), state.u.dtype),
-                                       jnp.asarray(cat("weights", float), state.u.dtype)))
+    cat = lambda k, dt: jax.device_put(np.concatenate([np.asarray(m[k], dt) for m in ms]))  # noqa: E731
+    moves = np.asarray(run_stored(_material_moves, state.u, state.rot, state.strain,
+                                  cat("blocks", np.int32), cat("offsets", state.u.dtype),
+                                  cat("weights", state.u.dtype)))
     return np.split(moves, np.cumsum([len(m["points"]) for m in ms])[:-1])
 
 
@@ -373,7 +376,7 @@ def scene_bolts(scene, layout, state, active=None) -> list[dict[str, Any]]:
     return out
 
 
-_bolt_geometry = jax.jit(bolt_geometry)
+_bolt_geometry = on_disk("bolt_geometry")(jax.jit(bolt_geometry))
 """One program (a few hundredths of a second to compile), where run op by op the
 function compiled some thirty primitives (0.5 s of the demo's result)."""
 
@@ -387,7 +390,7 @@ def bolt_anchors(model, state, layout=None) -> list[np.ndarray]:
     """
     if not model.n_bolts:
         return []
-    g = _bolt_geometry(model, state)
+    g = run_stored(_bolt_geometry, model, state)
     ends = np.stack([np.asarray(g.point_b), np.asarray(g.point_a)], axis=1)
     if layout is None:
         return list(ends)
@@ -469,7 +472,7 @@ def moving_blocks(travel, max_displacement: float) -> list[int]:
     return [int(i) for i in np.nonzero(np.asarray(travel) > MOVING * max_displacement)[0]]
 
 
-_group_limits = jax.jit(group_limits)
+_group_limits = on_disk("group_limits")(jax.jit(group_limits))
 
 
 #: A mechanism whose moving blocks have each moved, net, less than this share of
@@ -659,7 +662,8 @@ def build_result(scene, model, layout, state, ref, info, records, history, timin
     limit = np.asarray(model.travel_limit, float)
     if status == Status.MECHANISM:
         # Blocks that moved together had their group's limit (group_limits).
-        limit, group = (np.asarray(x) for x in _group_limits(model, info.snapshot, info.travel))
+        limit, group = (np.asarray(x)
+                        for x in run_stored(_group_limits, model, info.snapshot, info.travel))
     last = records[-1]
     overlap, overlap_rel = block_overlap(model, state, nr + len(layout.walls))
     if status == Status.CONVERGED and overlap_rel > OVERLAP_TOL:

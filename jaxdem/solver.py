@@ -27,7 +27,14 @@ import numpy as np
 
 from jaxdem.config import float64
 from jaxdem.core import model as model_mod
-from jaxdem.core.compile_cache import COMPILE_TIMES, QUICK_WORK, compiled_program, prefetch
+from jaxdem.core.compile_cache import (
+    COMPILE_TIMES,
+    QUICK_WORK,
+    compiled_program,
+    on_disk,
+    prefetch,
+    run_stored,
+)
 from jaxdem.core.increment import bounded_factorisations, increment, increment_tangent
 from jaxdem.core.kinematics import MOVING, connected_groups
 from jaxdem.core.loads import in_situ_preload, make_loads, release_forces_jit
@@ -238,7 +245,7 @@ def _run_stage(d, stage, layout, data, base, pending, releasing, loose, relaxed)
         releasing.append(dict(names=names, load=load, before=1.0, held=held))
     if removed.any():
         alive = np.asarray(d.state.alive) & ~removed
-        d.state = dataclasses.replace(d.state, alive=jnp.asarray(alive))
+        d.state = dataclasses.replace(d.state, alive=jax.device_put(alive))
     for b, bs in enumerate(layout.bolt_stages):
         if bs == stage["name"] or (bs is None and stage["first"]):
             d.bolt_active[b] = True
@@ -418,7 +425,7 @@ def scene_data(scene, layout) -> Data:
                      if st.water_table is not None})
 
 
-_connected_groups = jax.jit(connected_groups)
+_connected_groups = on_disk("connected_groups")(jax.jit(connected_groups))
 """Groups of blocks in closed contact, for :func:`falling_free` (one program)."""
 
 
@@ -444,8 +451,8 @@ def falling_free(model: Model, layout, travel, snap, alive, limit: float):
     if np.any(moving[a[closed]] != moving[b[closed]]):
         return None  # a contact in the way: the blocks slide or rotate on the rock
     # Groups of moving blocks in closed contact (the slots' fixed shapes: one program).
-    group = np.asarray(_connected_groups(jnp.asarray(moving), jnp.asarray(a),
-                                         jnp.asarray(b), jnp.asarray(closed)))
+    put = jax.device_put
+    group = np.asarray(run_stored(_connected_groups, put(moving), put(a), put(b), put(closed)))
     area = np.bincount(group[moving], weights=np.asarray(model.area)[moving], minlength=N)
     return moving if area.max() <= limit else None
 
@@ -590,9 +597,10 @@ class _Driver:
         out = np.zeros((1 + self.data.p, N, D))
         if not removed.any() or self.info is None:
             return out
-        snap, rm = self.info.snapshot, jnp.asarray(removed)
+        snap, rm = self.info.snapshot, jax.device_put(np.asarray(removed))
         if self.dstate is None:
-            out[0] = np.asarray(release_forces_jit(self.state.centroid, snap, rm, D))
+            out[0] = np.asarray(run_stored(release_forces_jit, self.state.centroid, snap, rm,
+                                           ndof=D))
             return out
         value, tangent = release_with_tangent(self.state.centroid, snap, rm,
                                               self.dstate["centroid"], self.info.dsnapshot, D)
@@ -603,7 +611,7 @@ class _Driver:
         """The in-situ state (contact forces of the in-situ stress at zero displacement)."""
         data, mode = self.data, scene.in_situ.mode
         stacks = (data.sigma, data.surface, data.gamma, data.k0)
-        args = tuple(jnp.asarray(x[0], self.layout.dtype) for x in stacks)
+        args = tuple(jax.device_put(np.asarray(x[0], self.layout.dtype)) for x in stacks)
         loads, dloads = self.loads(base)
         while True:
             if self.dstate is None:

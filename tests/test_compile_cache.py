@@ -251,3 +251,62 @@ def test_a_single_solve_skips_its_sub_steps_and_a_batch_ends_its_loop():
     batched = _outer_loop(jax.vmap(substeps_to_equilibrium, in_axes=(None, 0, 0),
                                    axis_name="lanes"), lanes, stack(state), stack(loads))
     assert batched.params["cond_jaxpr"].out_avals[0].shape == (1,)  # each member's status
+
+
+def test_a_small_host_program_is_run_by_one_compilation_and_stored(xla_compiles, monkeypatch,
+                                                                   tmp_path):
+    """``run_stored`` gives the jitted function's answer, compiles it once for a shape (the
+    next call, and one with other values, run that program), stores it on disk under its
+    ``on_disk`` name, and a registry that has forgotten it loads it from there untraced."""
+    monkeypatch.setattr(compile_cache, "_program_dir", lambda: tmp_path)
+    monkeypatch.setattr(compile_cache, "_SMALL", compile_cache.collections.OrderedDict())
+
+    @compile_cache.on_disk("test_small_program")
+    @jax.jit
+    def f(x, k):
+        return jnp.cumsum(x) * k
+
+    x, two, three = jnp.arange(5.0), jnp.asarray(2.0), jnp.asarray(3.0)
+    np.testing.assert_array_equal(compile_cache.run_stored(f, x, two), f(x, two))
+    np.testing.assert_array_equal(compile_cache.run_stored(f, x + 1.0, three), f(x + 1.0, three))
+    assert len(xla_compiles) == 1
+    assert len(list(tmp_path.glob("*.pkl"))) == 1
+    compile_cache._SMALL.clear()
+    lowered = []
+    monkeypatch.setattr(compile_cache, "_compiler", lambda *a: lowered.append(a))
+    np.testing.assert_array_equal(compile_cache.run_stored(f, x, two), f(x, two))
+    assert lowered == [] and len(xla_compiles) == 1
+
+
+def test_a_warm_run_traces_no_program(tmp_path):
+    """A second ``jaxdem demo`` (an excavation, bolts, monitors: every host step of a
+    staged solve) loads every program it runs: the increment and the in-situ preload, and
+    the small ones of the monitors' readings, the forces of the excavated blocks and the
+    bolts' anchors (``run_stored``); the model's arrays go to the device without a
+    program (``jnp.asarray`` of a host array compiles one). JAX's log of what it traces
+    is empty."""
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "JAXDEM_CACHE_DIR": str(tmp_path / "cache")}
+    code = (
+        "import logging, sys\n"
+        "import jax\n"
+        "jax.config.update('jax_log_compiles', True)\n"
+        "traced = []\n"
+        "class H(logging.Handler):\n"
+        "    def emit(self, r):\n"
+        "        m = r.getMessage()\n"
+        "        if m.startswith('Finished tracing'):\n"
+        "            traced.append(m.split(' in ')[0])\n"
+        "logging.getLogger('jax').addHandler(H())\n"
+        "from jaxdem.cli import main\n"
+        "assert main(['demo', '--no-figures', '--out', sys.argv[1]]) == 0\n"
+        "print('TRACED', traced)\n")
+    runs = [subprocess.run([sys.executable, "-c", code, str(tmp_path / f"out{k}")], env=env,
+                           capture_output=True, text=True, check=True, timeout=600)
+            for k in range(2)]
+    first, second = (r.stdout.splitlines()[-1] for r in runs)
+    assert "increment" in first  # the cold run traced its programs
+    assert second == "TRACED []", second

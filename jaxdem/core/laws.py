@@ -37,10 +37,11 @@ def intact_stiffness(E, nu):
     return E / (1.0 - nu**2), E / (1.0 + nu)
 
 
-def plane_strain_elasticity(E, nu):
-    """Plane-strain elasticity matrix D (kPa): (sx, sy, txy) = D (ex, ey, gxy)."""
+def plane_strain_elasticity(E, nu, xp=jnp):
+    """Plane-strain elasticity matrix D (kPa): (sx, sy, txy) = D (ex, ey, gxy); ``xp`` the
+    array module (NumPy for the host's model, which then compiles no program for it)."""
     f = E / ((1.0 + nu) * (1.0 - 2.0 * nu))
-    return f * jnp.array([[1.0 - nu, nu, 0.0], [nu, 1.0 - nu, 0.0], [0.0, 0.0, 0.5 - nu]])
+    return f * xp.array([[1.0 - nu, nu, 0.0], [nu, 1.0 - nu, 0.0], [0.0, 0.0, 0.5 - nu]])
 
 
 def equivalent_stiffness(h1, h2, k1_inv, k2_inv, k0_inv):

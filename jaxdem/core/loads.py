@@ -139,4 +139,4 @@ def release_forces(centroid, snap: Snapshot, removed, ndof):
     return out
 
 
-release_forces_jit = jax.jit(release_forces, static_argnums=3)
+release_forces_jit = on_disk("release_forces")(jax.jit(release_forces, static_argnames="ndof"))

@@ -31,7 +31,6 @@ import dataclasses
 import math
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from jaxdem import geometry
@@ -280,13 +279,13 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
     cell_D = np.zeros((N if deformable else 0, 3, 3))
     code = {name: k for k, name in enumerate(scene.materials)}
     material_of = np.array([code[pc.material] for pc in pieces], np.int64)
-    for k, m in enumerate(scene.materials.values()):  # per material: D is a device array
+    for k, m in enumerate(scene.materials.values()):  # per material
         i = np.nonzero(material_of == k)[0]
         kn_i, ks_i = intact_stiffness(m.E, m.nu)
         kn_inv[i], ks_inv[i] = 1.0 / kn_i, 1.0 / ks_i
         weight[i, 1] = -m.unit_weight * areas[i]
         if deformable:
-            cell_D[i] = plane_strain_elasticity(m.E, m.nu)
+            cell_D[i] = plane_strain_elasticity(m.E, m.nu, np)
     traction = np.zeros((N, D))
     for bd in scene.boundaries:
         if bd.condition == "traction" and bd.stage is None:
@@ -381,7 +380,8 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
         span_tol=_put(max(0.01 * L, touch_tol), dtype),
         cos_parallel=_put(math.cos(math.radians(2.0)), dtype),
         corner_share=_put(0.1, dtype),
-        max_iterations=jnp.asarray(s.max_iterations), max_substeps=jnp.asarray(max_substeps),
+        max_iterations=jax.device_put(int(s.max_iterations)),
+        max_substeps=jax.device_put(int(max_substeps)),
         joint_intact=_put(joint_intact.astype(bool)),
         gamma_w=_put(gamma_w, dtype),
         bolt_blocks=_put(bolts["blocks"]),
