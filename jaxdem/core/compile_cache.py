@@ -28,7 +28,7 @@ The small programs of a solve's host steps (the monitors' readings, the forces o
 blocks removed, the bolts' anchors, a mechanism's groups) are run by :func:`run_stored`,
 stored on disk the same way: a warm run traces and lowers no program at all (JAX traced,
 lowered and looked each up in its cache in every run, 10-30 ms each and 60 ms for a
-process's first lowering: 0.15-0.18 s of a 1.8-2.3 s warm run of seed example 4 or the demo).
+process's first lowering: 0.08-0.18 s of a 1.8-2.3 s warm run of seed example 4 wet or the demo).
 
 Compilation beside other work: XLA compiles without Python's interpreter lock.
 :func:`prefetch` traces a program on the caller's thread and compiles it on a
