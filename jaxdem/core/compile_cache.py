@@ -485,20 +485,25 @@ def compiled_program(fn, *args, quick: bool = False, **static):
             compiled, _ = compiled_program(fn, *args, quick=quick, **static)
             return compiled, time.perf_counter() - t0
     try:
-        compiled = None
-        if pending is not None:
-            try:
-                compiled = pending.result()
-            except Exception:  # noqa: BLE001 - compile here, where an error reaches the caller
-                compiled = None
-        if compiled is None:
-            compiled = _lower(fn, args, static, quick, leaves, tree)()
+        compiled = _collected(pending, fn, args, static, quick, leaves, tree)
         _remember(key, compiled)
     except BaseException as err:
         _done_compiling(key, mine, error=err)
         raise
     _done_compiling(key, mine, compiled)
     return compiled, time.perf_counter() - t0
+
+
+def _collected(pending, fn, args, static, quick, leaves, tree):
+    """The program that :func:`prefetch` compiled (``pending``, its future, or None), else
+    one compiled (or loaded) now: where the prefetch failed, here, where an error reaches
+    the caller."""
+    if pending is not None:
+        try:
+            return pending.result()
+        except Exception:  # noqa: BLE001 - compile below, where an error reaches the caller
+            pass
+    return _lower(fn, args, static, quick, leaves, tree)()
 
 
 def run_stored(fn, *args, **static):
@@ -517,13 +522,7 @@ def run_stored(fn, *args, **static):
             _SMALL.move_to_end(key)
         pending = _PENDING.pop(key, None) if compiled is None else None
     if compiled is None:
-        if pending is not None:
-            try:
-                compiled = pending.result()
-            except Exception:  # noqa: BLE001 - compile here, where an error reaches the caller
-                compiled = None
-        if compiled is None:
-            compiled = _lower(fn, args, static, False, leaves, tree)()
+        compiled = _collected(pending, fn, args, static, False, leaves, tree)
         with _LOCK:
             _SMALL[key] = compiled
             if len(_SMALL) > MAX_SMALL:
