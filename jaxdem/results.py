@@ -236,6 +236,13 @@ def monitor_positions(m, centroid, rot, strain):
                             jnp.asarray(m["offsets"]), jnp.asarray(m["weights"], centroid.dtype))
 
 
+def _stacked(ms, key: str, dtype) -> jax.Array:
+    """The field ``key`` of every monitor of ``ms``, concatenated, on the device
+    (``jax.device_put``: ``jnp.asarray`` of a host array compiles a program for each new
+    shape)."""
+    return jax.device_put(np.concatenate([np.asarray(m[key], dtype) for m in ms]))
+
+
 def _all_positions(layout, state) -> list[np.ndarray]:
     """Every monitor's material points in ``state``, in the order of ``layout.monitors``.
 
@@ -244,23 +251,19 @@ def _all_positions(layout, state) -> list[np.ndarray]:
     more than its increments (about 20 ms a solve on the benchmark tunnel).
     """
     ms = list(layout.monitors.values())
-    blocks = np.concatenate([np.asarray(m["blocks"], np.int32) for m in ms])
-    offsets = np.concatenate([np.asarray(m["offsets"], float) for m in ms])
-    weights = np.concatenate([np.asarray(m["weights"], float) for m in ms])
-    put = jax.device_put  # not jnp.asarray: that compiles a program for each new shape
     pts = np.asarray(run_stored(_material_points, state.centroid, state.rot, state.strain,
-                                put(blocks), put(offsets),
-                                put(weights.astype(state.centroid.dtype))))
+                                _stacked(ms, "blocks", np.int32), _stacked(ms, "offsets", float),
+                                _stacked(ms, "weights", state.centroid.dtype)))
     return np.split(pts, np.cumsum([len(m["points"]) for m in ms])[:-1])
 
 
 def _all_moves(layout, state) -> list[np.ndarray]:
     """Every monitor's material-point displacements since the start (:func:`_material_moves`)."""
     ms = list(layout.monitors.values())
-    cat = lambda k, dt: jax.device_put(np.concatenate([np.asarray(m[k], dt) for m in ms]))  # noqa: E731
     moves = np.asarray(run_stored(_material_moves, state.u, state.rot, state.strain,
-                                  cat("blocks", np.int32), cat("offsets", state.u.dtype),
-                                  cat("weights", state.u.dtype)))
+                                  _stacked(ms, "blocks", np.int32),
+                                  _stacked(ms, "offsets", state.u.dtype),
+                                  _stacked(ms, "weights", state.u.dtype)))
     return np.split(moves, np.cumsum([len(m["points"]) for m in ms])[:-1])
 
 
