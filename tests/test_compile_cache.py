@@ -7,6 +7,7 @@ collects it instead of compiling it again. ``while_compiling`` runs host work
 """
 
 import dataclasses
+import random
 import threading
 
 import jax
@@ -257,14 +258,20 @@ def test_a_small_host_program_is_run_by_one_compilation_and_stored(xla_compiles,
                                                                    tmp_path):
     """``run_stored`` gives the jitted function's answer, compiles it once for a shape (the
     next call, and one with other values, run that program), stores it on disk under its
-    ``on_disk`` name, and a registry that has forgotten it loads it from there untraced."""
+    ``on_disk`` name, and a registry that has forgotten it loads it from there untraced.
+
+    The program holds a constant of this run's own: JAX's persistent cache (shared by the
+    runs of the suite on a machine) has never seen it, so that the compilation is not a hit
+    there, which :func:`compile_cache._compiler` would answer with a second one that can be
+    stored."""
     monkeypatch.setattr(compile_cache, "_program_dir", lambda: tmp_path)
     monkeypatch.setattr(compile_cache, "_SMALL", compile_cache.collections.OrderedDict())
+    nonce = 1.0 + random.random()
 
     @compile_cache.on_disk("test_small_program")
     @jax.jit
     def f(x, k):
-        return jnp.cumsum(x) * k
+        return jnp.cumsum(x) * k * nonce
 
     x, two, three = jnp.arange(5.0), jnp.asarray(2.0), jnp.asarray(3.0)
     np.testing.assert_array_equal(compile_cache.run_stored(f, x, two), f(x, two))
