@@ -334,10 +334,10 @@ def test_float32_dense_solve_is_refined_to_float32s_rounding():
     """A float32 dense solve (:func:`jaxdem.core._linsolve.refined_solve`: LU in float32,
     two corrections of the residual formed in float64) gives the answer of the float32
     matrix to float32's rounding of it (1e-6 relative; measured 2.6e-8), where the float32
-    LU alone is off by about cond(K) eps (2.4e-4 here), the soft modes' share of a
-    stiff spring's rounding (a pair of blocks falling side by side turned 1e-3 rad a
-    sub-step). The reference: NumPy's float64 solve of the same float32 matrix, whose
-    condition number, 1e5, is a stiff spring's kn over the pseudo-mass's eps M."""
+    LU alone is off by about cond(K) eps (2.4e-4 here; in a scene the error falls in the
+    soft modes: a pair of blocks falling side by side turned 1e-3 rad a sub-step). The
+    reference: NumPy's float64 solve of the same float32 matrix, whose condition number,
+    1e5, is that of a stiff spring's kn beside the pseudo-mass's eps M."""
     rng = np.random.default_rng(0)
     n = 60
     Q, _ = np.linalg.qr(rng.standard_normal((n, n)))

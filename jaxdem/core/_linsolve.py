@@ -2,10 +2,12 @@
 
 Owns the three paths behind :func:`linear_solve`, chosen by
 ``model.linear_solver`` (static): "dense" (LU of the assembled matrix, Cholesky where
-it is symmetric and large: :func:`solve_dense`), "sparse" (SuiteSparse's CHOLMOD or KLU
+it is symmetric and large: :func:`solve_dense`; in float32 refined in float64,
+:func:`refined_solve`), "sparse" (SuiteSparse's CHOLMOD or KLU
 inside the program, :func:`_solve_sparse`) and "cg" (matrix-free preconditioned
 conjugate gradients, :func:`solve_cg`); and the assembly they share
-(:func:`stiffness_blocks`, :func:`assemble_dense`, :func:`host_matrix`).
+(:func:`stiffness_blocks`, :func:`assemble_dense` and :func:`dense_of`,
+:func:`host_matrix`).
 
 Data flow: takes the rank-one terms of :mod:`jaxdem.core._springs` and the
 gather/scatter of :mod:`jaxdem.core.kinematics`; used by the Newton iteration
