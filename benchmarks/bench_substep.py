@@ -6,7 +6,9 @@ the sub-step at the start of one increment, each jitted alone, on that increment
 model, state and loads: the broad phase, the narrow phase, the whole detection
 (``prepare_substep``), the packing of the touching slots, the Newton iteration, one
 iteration's assembly (springs summed into the blocks of the touching pairs, the
-triplets CHOLMOD gets), the final evaluation, the corner bound, Newton with everything
+triplets CHOLMOD gets), its linear solve (the secant matrix with values met before,
+whose factor sparsax reuses, and with new ones; the slip tangent with new ones), the
+final evaluation, the corner bound, Newton with everything
 after it (``newton_and_commit``), the commit alone (the blocks moved, the springs'
 history laid out over every slot, the global balance), and the whole sub-step.
 Medians of ``--repeats`` calls, ms. The accuracy of what is timed is the solver's own
@@ -40,7 +42,7 @@ def main() -> None:
     import jaxdem
     from jaxdem import solver
     from jaxdem.core import _contact, _linsolve, _substep
-    from jaxdem.core._springs import evaluate, stiffness_terms
+    from jaxdem.core._springs import evaluate, slip_coupling, stiffness_terms
 
     jaxdem.config.configure()
     recorded = []
@@ -98,6 +100,33 @@ def main() -> None:
 
     rows.append(("assembly and triplets", timed(assembly, mdl2, packed, ev)))
     triplets = jax.jit(assembly)(mdl2, packed, ev)[0].shape[0]
+
+    # One iteration's linear solve, assembly included, with the springs' stiffness scaled
+    # by a factor that changes from call to call (as the states do between iterations:
+    # sparsax refactorises only for new values) and with the same values each call (as
+    # with the states held: its factor is reused). The slip tangent: the exact tangent of
+    # slipping slots (on the sparse path GMRES on CHOLMOD's factor, KLU where GMRES fails).
+    def solve(scale, m, sb, ev, tangent):
+        t = jnp.asarray(tangent)
+        a, b, B, k = stiffness_terms(m, sb, ev, t, None)
+        return _linsolve.linear_solve(m, sb, (a, b, B, k * scale), ev.R, symmetric=~t,
+                                      coupling=slip_coupling(sb, ev, t) if tangent else None)
+
+    def timed_new(tangent):
+        f = jax.jit(solve, static_argnums=4)
+        jax.block_until_ready(f(1.0, mdl2, packed, ev, tangent))
+        times = []
+        for i in range(args.repeats):
+            scale = jnp.asarray(1.0 + 1e-9 * (i + 1))
+            t = time.perf_counter()
+            jax.block_until_ready(f(scale, mdl2, packed, ev, tangent))
+            times.append(time.perf_counter() - t)
+        return 1e3 * statistics.median(times)
+
+    rows.append(("secant solve, same values", timed(
+        lambda m, sb, e: solve(1.0, m, sb, e, False), mdl2, packed, ev)))
+    rows.append(("secant solve, new values", timed_new(False)))
+    rows.append(("slip tangent solve, new values", timed_new(True)))
     rows.append(("corner bound", timed(
         lambda m, sb, s, c, du: _substep.corner_bound(m, sb, s.centroid, c, du,
                                                       packed.geo.a.shape[0]),
