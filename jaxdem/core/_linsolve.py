@@ -547,9 +547,10 @@ def _slip_gmres(model: Model, sparsax, sym, upper, coupling, b, fallback):
     x = _gmres(matvec, lambda r: sparsax.solve(*upper, r), b, GMRES_RTOL, GMRES_MAX)
     # GMRES has answered where its residual is within GMRES_RTOL, or within what forming
     # K x can resolve (a backward error of BACKWARD_ROUND_OFFS round-offs of |K| |x| + |b|):
-    # where springs a billion times stiffer than eps M meet, the residual's own rounding is
-    # above 1e-10 |b|. On seed example 3's slip tangent (10 slipping slots) GMRES's residual
-    # stood at 7.0e-10 |b| from its 10th iteration, 0.48 round-offs of |K| |x| + |b|, and
+    # near an answer, where R is small against the stiff springs' |K| |x|, the residual's
+    # own rounding is above 1e-10 |b|. On seed example 3's slip tangent (10 slipping
+    # slots) GMRES's residual stood at 7.0e-10 |b| from its 10th iteration, 0.48
+    # round-offs of |K| |x| + |b|, and
     # KLU's answer (then taken) left 8.2e-10 |b|, 0.56 round-offs, 5e-11 from GMRES's: each
     # slip tangent cost a Cholesky factor, 40 GMRES iterations and an LU, 171 ms against
     # 33 ms a secant solve (BENCHMARKS.md, "Thirty-seventh session").
