@@ -550,10 +550,10 @@ def _slip_gmres(model: Model, sparsax, sym, upper, coupling, b, fallback):
     # near an answer, where R is small against the stiff springs' |K| |x|, the residual's
     # own rounding is above 1e-10 |b|. On seed example 3's slip tangent (10 slipping
     # slots) GMRES's residual stood at 7.0e-10 |b| from its 10th iteration, 0.48
-    # round-offs of |K| |x| + |b|, and
-    # KLU's answer (then taken) left 8.2e-10 |b|, 0.56 round-offs, 5e-11 from GMRES's: each
-    # slip tangent cost a Cholesky factor, 40 GMRES iterations and an LU, 171 ms against
-    # 33 ms a secant solve (BENCHMARKS.md, "Thirty-seventh session").
+    # round-offs of |K| |x| + |b|, and KLU's answer (then taken) left 8.2e-10 |b|, 0.56
+    # round-offs, 5e-11 from GMRES's: that slip tangent cost a Cholesky factor, 40 GMRES
+    # iterations and an LU, 171 ms against 33 ms a secant solve (BENCHMARKS.md,
+    # "Thirty-seventh session").
     r = jnp.linalg.norm(b - matvec(x))
     floor = BACKWARD_ROUND_OFFS * jnp.finfo(b.dtype).eps * jnp.linalg.norm(
         magnitude(jnp.abs(x)) + jnp.abs(b))
