@@ -60,13 +60,16 @@ def main() -> None:
     model, state, loads = recorded[min(args.increment, len(recorded) - 1)]
     mdl = dataclasses.replace(model, free=model.free & state.alive)
 
-    def timed(f, *a):
+    def timed(f, *a, each=None):
+        """Median ms of ``f(*a)`` jitted; with ``each``, the i-th call's arguments are
+        ``each(i)`` (a) for the compiling call)."""
         f = jax.jit(f)
         jax.block_until_ready(f(*a))
         times = []
-        for _ in range(args.repeats):
+        for i in range(args.repeats):
+            call = a if each is None else jax.block_until_ready(each(i))
             t = time.perf_counter()
-            jax.block_until_ready(f(*a))
+            jax.block_until_ready(f(*call))
             times.append(time.perf_counter() - t)
         return 1e3 * statistics.median(times)
 
@@ -113,15 +116,9 @@ def main() -> None:
                                       coupling=slip_coupling(sb, ev, t) if tangent else None)
 
     def timed_new(tangent):
-        f = jax.jit(solve, static_argnums=4)
-        jax.block_until_ready(f(1.0, mdl2, packed, ev, tangent))
-        times = []
-        for i in range(args.repeats):
-            scale = jnp.asarray(1.0 + 1e-9 * (i + 1))
-            t = time.perf_counter()
-            jax.block_until_ready(f(scale, mdl2, packed, ev, tangent))
-            times.append(time.perf_counter() - t)
-        return 1e3 * statistics.median(times)
+        return timed(lambda s, m, sb, e: solve(s, m, sb, e, tangent),
+                     jnp.asarray(1.0), mdl2, packed, ev,
+                     each=lambda i: (jnp.asarray(1.0 + 1e-9 * (i + 1)), mdl2, packed, ev))
 
     rows.append(("secant solve, same values", timed(
         lambda m, sb, e: solve(1.0, m, sb, e, False), mdl2, packed, ev)))

@@ -533,16 +533,12 @@ def _slip_gmres(model: Model, sparsax, sym, upper, coupling, b, fallback):
     N, D = model.n_blocks, model.ndof
     ca, cb, cL, cR, ck = coupling
 
-    def matvec(x):
-        coupled = ck * jnp.sum(cR * gather_pairs(x.reshape(N, D), ca, cb), axis=1)
-        return (blocks_times(model, *sym, x)
-                + scatter_pairs(N, ca, cb, coupled[:, None] * cL).reshape(-1))
+    def times(x, f=lambda v: v):  # K x, or with f = abs |K| x: the size of its terms
+        coupled = f(ck) * jnp.sum(f(cR) * gather_pairs(x.reshape(N, D), ca, cb), axis=1)
+        return (blocks_times(model, sym[0], sym[1], f(sym[2]), x)
+                + scatter_pairs(N, ca, cb, coupled[:, None] * f(cL)).reshape(-1))
 
-    def magnitude(x):  # |K| x for x >= 0: the size of the terms K x sums
-        coupled = jnp.abs(ck) * jnp.sum(jnp.abs(cR) * gather_pairs(x.reshape(N, D), ca, cb),
-                                        axis=1)
-        return (blocks_times(model, sym[0], sym[1], jnp.abs(sym[2]), x)
-                + scatter_pairs(N, ca, cb, coupled[:, None] * jnp.abs(cL)).reshape(-1))
+    matvec = times
 
     x = _gmres(matvec, lambda r: sparsax.solve(*upper, r), b, GMRES_RTOL, GMRES_MAX)
     # GMRES has answered where its residual is within GMRES_RTOL, or within what forming
@@ -556,7 +552,7 @@ def _slip_gmres(model: Model, sparsax, sym, upper, coupling, b, fallback):
     # "Thirty-seventh session").
     r = jnp.linalg.norm(b - matvec(x))
     floor = BACKWARD_ROUND_OFFS * jnp.finfo(b.dtype).eps * jnp.linalg.norm(
-        magnitude(jnp.abs(x)) + jnp.abs(b))
+        times(jnp.abs(x), jnp.abs) + jnp.abs(b))
     ok = r <= jnp.maximum(10 * GMRES_RTOL * jnp.linalg.norm(b), floor)
     return jax.lax.cond(ok, lambda: x, fallback)
 
