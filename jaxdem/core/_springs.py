@@ -112,8 +112,10 @@ class Sub:
 
     Contacts: ``geo`` (the detection's :class:`jaxdem.core._contact.Slots`), ``prop``
     (their springs and strengths, :class:`jaxdem.core.laws.SlotLaw`), rows ``Bn``, ``Bs``
-    (S, 2 D), committed shear force ``fs_old``, initial normal force ``fn0``,
-    ``failed``, water force ``pw`` (S,) (pore pressure x share, on joint slots). Bolts
+    (S, 2 D; None where a sub-step's detection left them to
+    :func:`jaxdem.core._substep.pack_slots`, which forms them for the touching slots),
+    committed shear force ``fs_old``, initial normal force ``fn0``, ``failed``, water
+    force ``pw`` (S,) (pore pressure x share, on joint slots). Bolts
     (when the scene has them): ``bolt``, :class:`Bolts`. ``load``: (N, D) external
     load. ``free``: (N,) blocks with degrees of freedom (not fixed, not excavated).
     ``stress``: (N, 3) committed stress of deformable blocks (tension positive);
@@ -124,8 +126,8 @@ class Sub:
 
     geo: Slots
     prop: SlotLaw
-    Bn: jax.Array
-    Bs: jax.Array
+    Bn: jax.Array | None
+    Bs: jax.Array | None
     fs_old: jax.Array
     fn0: jax.Array
     failed: jax.Array
