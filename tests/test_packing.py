@@ -18,7 +18,16 @@ from scenes import jointed_tunnel
 
 from jaxdem import solver
 from jaxdem.core import model as model_mod
-from jaxdem.core._substep import pack_slots, pair_places, prepare_substep
+from jaxdem.core._springs import evaluate
+from jaxdem.core._substep import (
+    _newton,
+    _unpacked,
+    commit_substep,
+    force_scales,
+    pack_slots,
+    pair_places,
+    prepare_substep,
+)
 from jaxdem.core.loads import make_loads
 from jaxdem.scene import parse_scene
 
@@ -147,3 +156,39 @@ def test_touching_pairs_at_the_start_are_those_that_bear_or_meet():
     np.testing.assert_array_equal(touching, [True, False, True, True, False])
     assert model_mod._touch_capacity(verts, nv, pairs, 0.1, 1e-3) == model_mod.bucket(
         int(1.5 * 3) + 16)
+
+
+def test_rows_formed_for_the_touching_slots_and_the_balance_over_them_are_all_slots():
+    """A sub-step forms the rows Bn, Bs of the touching slots alone (``prepare_substep``
+    leaves them out, ``pack_slots`` forms them on its places) and sums the balance over
+    those places: the same rows as the detection's for every slot, taken to the places
+    (zero rows on empty ones), and the same balance and admissibility as summed over all
+    the P x 2 V slots (a slot that touches nothing carries no force: it adds zeros). The
+    jointed tunnel with water and a bolt, 3 places a pair, at the first sub-step's
+    answer."""
+    model, state, _ = model_mod.build(parse_scene(jointed_tunnel(water=True, bolts=True)))
+    model = dataclasses.replace(model, slots_per_pair=3)
+    loads = make_loads(model, model.f_ext)
+    mdl, whole, st0, pairs, _ = prepare_substep(model, state, loads)
+    lean = prepare_substep(model, state, loads, rows=False)[1]
+    assert lean.Bn is None and lean.Bs is None
+    packed, st0p, sid, _, _ = pack_slots(mdl, lean, st0, state.centroid)
+    taken = pack_slots(mdl, whole, st0)[0]
+    assert sid is not None and packed.Bn.shape[0] < whole.Bn.shape[0]
+    for name in ("Bn", "Bs"):
+        np.testing.assert_array_equal(np.asarray(getattr(packed, name)),
+                                      np.asarray(getattr(taken, name)), err_msg=name)
+    assert np.abs(np.asarray(packed.Bn)).max() > 0
+    c = _newton(mdl, packed, st0p)
+    assert bool(c.converged)
+    band = force_scales(mdl, packed)[1]
+    ev = evaluate(mdl, packed, c.du, jnp.zeros(st0p.shape, bool), c.frozen_state, c.st, band)
+    laid = _unpacked(mdl, whole, ev, sid)
+    du = c.du.astype(whole.load.dtype)
+    _, over_all, _ = commit_substep(mdl, state, whole, pairs, du, laid)
+    _, over_touching, _ = commit_substep(mdl, state, lean, pairs, du, laid, None, (packed, ev))
+    assert float(jnp.linalg.norm(over_all.reaction)) > 0
+    for name in over_all._fields:
+        np.testing.assert_allclose(np.asarray(getattr(over_touching, name)),
+                                   np.asarray(getattr(over_all, name)), rtol=1e-13, atol=0,
+                                   err_msg=name)
