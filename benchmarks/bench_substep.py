@@ -4,7 +4,8 @@ iteration, on a real scene.
 Solves the scene once (its increments' arguments recorded), then times each piece of
 the sub-step at the start of one increment, each jitted alone, on that increment's
 model, state and loads: the broad phase, the narrow phase, the whole detection
-(``prepare_substep``), the packing of the touching slots, the Newton iteration, one
+(``prepare_substep``), the packing of the touching slots (their rows Bn, Bs formed
+there), the Newton iteration, one
 iteration's assembly (springs summed into the blocks of the touching pairs, the
 triplets CHOLMOD gets), its linear solve (the secant matrix with values met before,
 whose factor sparsax reuses, and with new ones; the slip tangent with new ones), the
@@ -79,11 +80,13 @@ def main() -> None:
     pairs, count, _ = jax.jit(broad)(mdl, state)
     rows.append(("narrow phase", timed(lambda m, s, p: _contact.narrow_phase(
         m, s.verts, s.centroid, p), mdl, state, pairs)))
-    rows.append(("detection (prepare_substep)", timed(_substep.prepare_substep, model, state,
-                                                      loads)))
-    mdl2, sub, st0, pairs, found = jax.jit(_substep.prepare_substep)(model, state, loads)
-    rows.append(("packing", timed(_substep.pack_slots, mdl2, sub, st0)))
-    packed, st0p, sid, _, touching = jax.jit(_substep.pack_slots)(mdl2, sub, st0)
+    # As a sub-step does: the rows Bn, Bs formed for the touching slots alone, at packing.
+    detect = lambda m, s, ld: _substep.prepare_substep(m, s, ld, rows=False)  # noqa: E731
+    rows.append(("detection (prepare_substep)", timed(detect, model, state, loads)))
+    mdl2, sub, st0, pairs, found = jax.jit(detect)(model, state, loads)
+    rows.append(("packing", timed(_substep.pack_slots, mdl2, sub, st0, state.centroid)))
+    packed, st0p, sid, _, touching = jax.jit(_substep.pack_slots)(mdl2, sub, st0,
+                                                                 state.centroid)
     newton = jax.jit(_substep._newton)(mdl2, packed, st0p)
     rows.append((f"Newton ({int(newton.it)} iterations)",
                  timed(_substep._newton, mdl2, packed, st0p)))
@@ -91,7 +94,6 @@ def main() -> None:
     held = lambda m, sb, du, st: evaluate(m, sb, du, jnp.zeros(st.shape, bool), st, st,  # noqa: E731
                                           _substep.force_scales(m, sb)[1])
     rows.append(("evaluation, packed slots", timed(held, mdl2, packed, newton.du, st0p)))
-    rows.append(("evaluation, all slots", timed(held, mdl2, sub, newton.du, st0)))
     ev = jax.jit(lambda m, sb, du, st: evaluate(m, sb, du, jnp.zeros(st.shape, bool), st, st,
                                                 band))(mdl2, packed, newton.du, st0p)
 
@@ -134,11 +136,13 @@ def main() -> None:
     # where every slot has a place: pack_slots gives no indices).
     laid = ev if sid is None else jax.jit(_substep._unpacked)(mdl2, sub, ev, sid)
 
-    def commit(m, s, sb, p, du, e):
-        return _substep.commit_substep(m, s, sb, p, du.astype(sb.load.dtype), e)
+    def commit(m, s, sb, p, du, e, pk, pe):
+        # The balance over the touching slots, as newton_and_commit sums it.
+        return _substep.commit_substep(m, s, pk if sid is None else sb, p,
+                                       du.astype(sb.load.dtype), e, None, (pk, pe))
 
     rows.append(("commit (move, springs, balance)",
-                 timed(commit, mdl2, state, sub, pairs, newton.du, laid)))
+                 timed(commit, mdl2, state, sub, pairs, newton.du, laid, packed, ev)))
     rows.append(("whole sub-step", timed(_substep.substep, model, state, loads)))
 
     S = st0.shape[0]
