@@ -4,7 +4,8 @@ Owns :func:`prepare_substep` (contacts and their history at the current geometry
 the :class:`jaxdem.core._springs.Sub`, from its slots' part :func:`slot_fields_of` and
 its blocks' part :func:`block_fields_of`, and the :class:`Detection`; what a sub-step
 needed, :class:`Needs`), :func:`pack_slots` (the touching slots that
-the iteration works on), :func:`_newton` (the iteration on du),
+the iteration works on, and in a sub-step their rows Bn, Bs, which only those need:
+:func:`slot_rows`), :func:`_newton` (the iteration on du),
 :func:`breaking` (with ``solver.bond_failure = "events"``, the springs that fail: elastic
 in the iteration until loaded beyond their strength, event by event),
 :func:`commit_substep` (move the blocks, commit the springs, global balance),
@@ -795,9 +796,10 @@ def substep(model: Model, state: State, loads: Loads, warm=False):
     clean joint's spring has nothing to lose: its slip asks for no further sub-step.
     ``warm``: see :func:`_newton`.
     """
-    # The rows Bn, Bs are formed for the touching slots alone (pack_slots): over all the
-    # detection's slots they were a third of a sub-step's detection (seed example 3 with
-    # D: 294,912 slots, 8,370 touching).
+    # The rows Bn, Bs are formed for the touching slots alone (pack_slots), and the
+    # balance summed over them: formed for all the detection's slots, gathered and summed
+    # over, they cost seed example 3 with D 69 ms of a 313 ms sub-step (294,912 slots,
+    # 8,370 touching; BENCHMARKS.md, "Thirty-eighth session").
     mdl, sub, st0, pairs, found = prepare_substep(model, state, loads, rows=False)
     return newton_and_commit(mdl, state, sub, st0, pairs, found, warm)
 
