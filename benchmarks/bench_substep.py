@@ -5,13 +5,13 @@ Solves the scene once (its increments' arguments recorded), then times each piec
 the sub-step at the start of one increment, each jitted alone, on that increment's
 model, state and loads: the broad phase, the narrow phase, the whole detection
 (``prepare_substep``), the packing of the touching slots (their rows Bn, Bs formed
-there), the Newton iteration, one
-iteration's assembly (springs summed into the blocks of the touching pairs, the
-triplets CHOLMOD gets), its linear solve (the secant matrix with values met before,
-whose factor sparsax reuses, and with new ones; the slip tangent with new ones), the
-final evaluation, the corner bound, Newton with everything
+there), the Newton iteration, one iteration's assembly (springs summed into the blocks
+of the touching pairs, the triplets CHOLMOD gets), its linear solve (the secant matrix
+with values met before, whose factor sparsax reuses, and with new ones; the slip
+tangent with new ones), the final evaluation, the corner bound, Newton with everything
 after it (``newton_and_commit``), the commit alone (the blocks moved, the springs'
-history laid out over every slot, the global balance), and the whole sub-step.
+history laid out over every slot, the global balance over the touching ones), and the
+whole sub-step.
 Medians of ``--repeats`` calls, ms. The accuracy of what is timed is the solver's own
 (the whole sub-step is the solver's); the table also gives the sizes that set the
 costs (pairs, touching pairs and slots, places).
