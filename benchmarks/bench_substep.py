@@ -137,9 +137,9 @@ def main() -> None:
     laid = ev if sid is None else jax.jit(_substep._unpacked)(mdl2, sub, ev, sid)
 
     def commit(m, s, sb, p, du, e, pk, pe):
-        # The balance over the touching slots, as newton_and_commit sums it.
-        return _substep.commit_substep(m, s, pk if sid is None else sb, p,
-                                       du.astype(sb.load.dtype), e, None, (pk, pe))
+        # The balance over the touching slots (their rows), as newton_and_commit sums it.
+        return _substep.commit_substep(m, s, sb, p, du.astype(sb.load.dtype), e, None,
+                                       (pk, pe))
 
     rows.append(("commit (move, springs, balance)",
                  timed(commit, mdl2, state, sub, pairs, newton.du, laid, packed, ev)))

@@ -538,9 +538,7 @@ def _slip_gmres(model: Model, sparsax, sym, upper, coupling, b, fallback):
         return (blocks_times(model, sym[0], sym[1], f(sym[2]), x)
                 + scatter_pairs(N, ca, cb, coupled[:, None] * f(cL)).reshape(-1))
 
-    matvec = times
-
-    x = _gmres(matvec, lambda r: sparsax.solve(*upper, r), b, GMRES_RTOL, GMRES_MAX)
+    x = _gmres(times, lambda r: sparsax.solve(*upper, r), b, GMRES_RTOL, GMRES_MAX)
     # GMRES has answered where its residual is within GMRES_RTOL, or within what forming
     # K x can resolve (a backward error of BACKWARD_ROUND_OFFS round-offs of |K| |x| + |b|):
     # near an answer, where R is small against the stiff springs' |K| |x|, the residual's
@@ -550,7 +548,7 @@ def _slip_gmres(model: Model, sparsax, sym, upper, coupling, b, fallback):
     # round-offs, 5e-11 from GMRES's: that slip tangent cost a Cholesky factor, 40 GMRES
     # iterations and an LU, 171 ms against 33 ms a secant solve (BENCHMARKS.md,
     # "Thirty-seventh session").
-    r = jnp.linalg.norm(b - matvec(x))
+    r = jnp.linalg.norm(b - times(x))
     floor = BACKWARD_ROUND_OFFS * jnp.finfo(b.dtype).eps * jnp.linalg.norm(
         times(jnp.abs(x), jnp.abs) + jnp.abs(b))
     ok = r <= jnp.maximum(10 * GMRES_RTOL * jnp.linalg.norm(b), floor)

@@ -999,10 +999,8 @@ def newton_and_commit(mdl: Model, state: State, sub: Sub, st0, pairs, found: Det
         breaks = breaking(packed, ev, band)
         ev = evaluate(mdl, packed, du, frozen, c.frozen_state, c.st, band, held=False)
     du = du.astype(sub.load.dtype)  # the blocks move in the scene's dtype
-    touching_ev = (packed, ev)
-    if sid is None:
-        sub = packed  # the same slots, with their rows
-    else:
+    touching_ev = (packed, ev)  # the rows are the packed slots' (sub may have none)
+    if sid is not None:
         ev = _unpacked(mdl, sub, ev, sid)
         if breaks is not None:
             breaks = jnp.zeros(sub.fn0.shape, bool).at[sid].set(breaks, mode="drop")
