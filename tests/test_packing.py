@@ -192,3 +192,41 @@ def test_rows_formed_for_the_touching_slots_and_the_balance_over_them_are_all_sl
         np.testing.assert_allclose(np.asarray(getattr(over_touching, name)),
                                    np.asarray(getattr(over_all, name)), rtol=1e-13, atol=0,
                                    err_msg=name)
+
+
+@pytest.mark.parametrize("places", ["packed", "all slots"])
+def test_sparse_pattern_formed_once_is_every_iterations_triplet_indices(places):
+    """The sparse path forms its triplets' indices once a sub-step
+    (``_linsolve.sparse_pattern``) and every iteration its values alone: the indices are
+    those that each iteration's matrix forms for itself: the secant, the slip tangent's
+    symmetric part and the whole slip tangent (a third group of terms, its coupling,
+    summed into the pairs' blocks), upper triangle and whole, bolts included. The
+    jointed tunnel with water and a bolt, 3 places a pair or every slot, at the first
+    sub-step's answer."""
+    from jaxdem.core import _linsolve
+    from jaxdem.core._springs import slip_coupling, stiffness_terms, with_coupling
+
+    model, state, _ = model_mod.build(parse_scene(jointed_tunnel(water=True, bolts=True)))
+    assert model.n_bolts > 0
+    model = dataclasses.replace(model, slots_per_pair=3)
+    loads = make_loads(model, model.f_ext)
+    mdl, sub, st0, _, _ = prepare_substep(model, state, loads)
+    if places == "packed":
+        sub, st0 = pack_slots(mdl, sub, st0)[:2]
+        assert sub.packed is not None
+    c = _newton(mdl, sub, st0)
+    band = force_scales(mdl, sub)[1]
+    ev = evaluate(mdl, sub, c.du, jnp.zeros(st0.shape, bool), c.frozen_state, c.st, band)
+    diag = _linsolve.pseudo_mass_diagonal(mdl, sub)
+    up, both = _linsolve.sparse_pattern(mdl, sub)
+    for tangent in (False, True):
+        a, b, B, k = stiffness_terms(mdl, sub, ev, tangent, None)
+        sym = _linsolve.stiffness_blocks(mdl, sub, a, b, B, B, k, diag)
+        coupling = slip_coupling(sub, ev, jnp.asarray(tangent))
+        whole = _linsolve.stiffness_blocks(mdl, sub, *with_coupling((a, b, B, k), coupling,
+                                                                     sub.geo.a.shape[0]), diag)
+        for blocks, upper, index in ((sym, True, up), (sym, False, both), (whole, False, both)):
+            formed = _linsolve.coo_of_blocks(mdl, *blocks, upper=upper)
+            given = _linsolve.coo_of_blocks(mdl, *blocks, upper=upper, index=index)
+            for x, y in zip(formed, given, strict=True):
+                np.testing.assert_array_equal(np.asarray(x), np.asarray(y))

@@ -32,7 +32,7 @@ from jaxdem.core.state import Model
 
 
 def linear_solve(model: Model, sub: Sub, terms, R, rtol=None, active=True, symmetric=True,
-                 coupling=None):
+                 coupling=None, pattern=None):
     """(K_t + eps M)^-1 R (N, D) by the model's linear solver (``model.linear_solver``).
 
     ``terms`` (a, b, B, k) are the symmetric rank-one terms of K_t
@@ -42,12 +42,13 @@ def linear_solve(model: Model, sub: Sub, terms, R, rtol=None, active=True, symme
     is the relative residual at which CG stops (:func:`solve_cg`); ``symmetric`` (a
     traced bool: False where the coupling is on) is for the direct paths
     (:func:`_solve_sparse`, :func:`solve_dense`), ``active`` for the sparse one. The
-    choice is static: only the chosen path is traced.
+    choice is static: only the chosen path is traced. ``pattern``: the sparse path's COO
+    indices of this sub-step (:func:`sparse_pattern`), where the caller formed them once.
     """
     if model.linear_solver == "cg":
         return solve_cg(model, sub, terms, R, rtol)
     if model.linear_solver == "sparse":
-        return _solve_sparse(model, sub, terms, R, active, symmetric, coupling)
+        return _solve_sparse(model, sub, terms, R, active, symmetric, coupling, pattern)
     return solve_dense(model, sub, terms, R, symmetric, coupling)
 
 
@@ -81,21 +82,7 @@ def stiffness_blocks(model: Model, sub: Sub, a, b, L, Rt, k, diag):
     S = sub.geo.a.shape[0]
     V = model.n_vertices
     T = (k.shape[0] - n_bolt_terms(model)) // S
-    if sub.packed is None:
-        P = S // (2 * V)
-        grid = jnp.arange(S).reshape(P, 2 * V)
-        slot = jnp.arange(S)
-        first, second = a[:S:2 * V], b[:S:2 * V]
-    else:
-        # Each pair's packed slots side by side (:func:`jaxdem.core._substep.pack_slots`).
-        grid, slot = sub.packed.grid, sub.packed.slot
-        first, second = sub.packed.first, sub.packed.second
-    touching = jnp.any(jnp.append(sub.geo.active, False)[grid], axis=1)
-    # A candidate pair that does not touch couples nothing: its (zero) blocks go to its
-    # first block's diagonal, so that the matrix's pattern holds the touching pairs
-    # alone (most candidate pairs do not touch: on seed example 2, 4,300 of 8,678; a
-    # sparse factorisation pays for every entry of the pattern).
-    second = jnp.where(touching, second, first)
+    grid, slot, rows, cols = _block_layout(model, sub, a, b, T)
     side1 = ((slot // V) % 2 == 1)[None, :, None]
 
     def by_pair(x):
@@ -116,10 +103,11 @@ def stiffness_blocks(model: Model, sub: Sub, a, b, L, Rt, k, diag):
     Kp = sum(kL[t, :, i, :, None] * R[t, :, i, None, :]
              for t in range(T) for i in range(grid.shape[1]))
     # The rest (bolts): a (2 D, 2 D) block per term.
-    a, b, L, Rt, k = a[T * S:], b[T * S:], L[T * S:], Rt[T * S:], k[T * S:]
+    L, Rt, k = L[T * S:], Rt[T * S:], k[T * S:]
     Kp = jnp.concatenate([Kp, k[:, None, None] * L[:, :, None] * Rt[:, None, :]])
-    first, second = jnp.concatenate([first, a]), jnp.concatenate([second, b])
     Kp = Kp.reshape(-1, 2, D, 2, D)
+    M = Kp.shape[0]
+    first, second = rows[:M], rows[M:2 * M]
     # Each block's own (diagonal) block, summed here over its pairs and bolts (a segment
     # sum, 0.2 ms on seed example 2), so that the sparse solver gets one triplet per
     # entry there rather than one per pair: it sorts its triplets for every new pattern,
@@ -131,9 +119,59 @@ def stiffness_blocks(model: Model, sub: Sub, a, b, L, Rt, k, diag):
     if sub.Kc is not None:
         own = own + sub.Kc.astype(own.dtype)
     blocks = jnp.concatenate([Kp[:, 0, :, 1], Kp[:, 1, :, 0], own])
+    return rows, cols, blocks
+
+
+def _block_layout(model: Model, sub: Sub, a, b, T: int):
+    """Where :func:`stiffness_blocks` puts its blocks: (grid, slot, rows, cols).
+
+    ``grid`` (pairs, m) holds each pair's slots (index S: none), ``slot`` their places
+    in the term list; ``rows`` and ``cols`` the block row and column of each block:
+    (first, second) of the pairs and bolts, then (second, first), then the N diagonal
+    blocks. ``a``, ``b``: the blocks of the terms (T groups of the S slots, then the
+    bolts'). They depend on the sub-step alone (:func:`sparse_pattern`).
+    """
+    N = model.n_blocks
+    S = sub.geo.a.shape[0]
+    V = model.n_vertices
+    if sub.packed is None:
+        P = S // (2 * V)
+        grid = jnp.arange(S).reshape(P, 2 * V)
+        slot = jnp.arange(S)
+        first, second = a[:S:2 * V], b[:S:2 * V]
+    else:
+        # Each pair's packed slots side by side (:func:`jaxdem.core._substep.pack_slots`).
+        grid, slot = sub.packed.grid, sub.packed.slot
+        first, second = sub.packed.first, sub.packed.second
+    touching = jnp.any(jnp.append(sub.geo.active, False)[grid], axis=1)
+    # A candidate pair that does not touch couples nothing: its (zero) blocks go to its
+    # first block's diagonal, so that the matrix's pattern holds the touching pairs
+    # alone (most candidate pairs do not touch: on seed example 2, 4,300 of 8,678; a
+    # sparse factorisation pays for every entry of the pattern).
+    second = jnp.where(touching, second, first)
+    first, second = jnp.concatenate([first, a[T * S:]]), jnp.concatenate([second, b[T * S:]])
     rows = jnp.concatenate([first, second, jnp.arange(N)])
     cols = jnp.concatenate([second, first, jnp.arange(N)])
-    return rows, cols, blocks
+    return grid, slot, rows, cols
+
+
+def sparse_pattern(model: Model, sub: Sub):
+    """The COO indices of a sub-step's iteration matrix on the sparse path, formed once a
+    sub-step rather than once an iteration: ((Ai, Aj) of its upper triangle, (Ai, Aj) of
+    the whole), as :func:`coo_of_blocks` forms them (``index``).
+
+    The blocks' places depend on the sub-step's slots and bolts alone
+    (:func:`_block_layout`), not on the springs' states, nor on the slip coupling (its
+    terms are the slots' own: summed into the same pairs' blocks). Formed in every
+    iteration they were two loops over the triplets (on seed example 2, 267,264 of them,
+    0.55-0.6 ms each).
+    """
+    a, b = sub.geo.a, sub.geo.b
+    if model.n_bolts:
+        rep = lambda x: jnp.repeat(x, 2 * model.ndof)  # noqa: E731  (as _bolt_terms)
+        a, b = jnp.concatenate([a, rep(sub.bolt.a)]), jnp.concatenate([b, rep(sub.bolt.b)])
+    _, _, rows, cols = _block_layout(model, sub, a, b, 1)
+    return coo_index(model, rows, cols, upper=True), coo_index(model, rows, cols)
 
 
 def blocks_times(model: Model, rows, cols, blocks, x):
@@ -379,7 +417,8 @@ def _watch(sparsax) -> None:
         time.sleep(WATCH_EVERY_S)
 
 
-def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True, coupling=None):
+def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True, coupling=None,
+                  pattern=None):
     """(K_t + eps M)^-1 R by a sparse direct solve inside the compiled program.
 
     SuiteSparse through sparsax's XLA FFI calls, so that the program is one XLA
@@ -400,8 +439,10 @@ def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True,
     (:func:`stiffness_blocks`) and handed over as COO triplets (duplicates summed,
     the blocks of unused pairs zero); float32 scenes are solved in float64.
     Without sparsax, SciPy's SuperLU on the host (:func:`_host_sparse_solve`).
+    ``pattern``: the triplets' indices (:func:`sparse_pattern`), else formed here.
     """
     diag = pseudo_mass_diagonal(model, sub)
+    up, both = (None, None) if pattern is None else pattern
     rhs = R.reshape(-1)
     sparsax = _sparsax()
 
@@ -416,39 +457,44 @@ def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True,
         return x.reshape(R.shape)
     b64 = rhs.astype(jnp.float64)
     if model.lanes is not None:
-        x = _lu_each_lane(sparsax)(jnp.asarray(active), *coo_of_blocks(model, *whole()), b64)
+        x = _lu_each_lane(sparsax)(jnp.asarray(active), *coo_of_blocks(model, *whole(), index=both),
+                                   b64)
         return x.astype(R.dtype).reshape(R.shape)
     # CHOLMOD stops the whole program where its matrix is not positive definite, so it
     # only gets what :func:`_lu_alone` lets through.
     if _lu_alone(model, R.dtype):
-        x = sparsax.lu_solve(*coo_of_blocks(model, *whole()), b64)
+        x = sparsax.lu_solve(*coo_of_blocks(model, *whole(), index=both), b64)
         return x.astype(R.dtype).reshape(R.shape)
     if coupling is not None and model.n_blocks * model.ndof <= SLIP_LU_UP_TO:
         # One assembly for both: where symmetric the coupling's terms are zero, and K's
         # blocks are the symmetric part's to the last bit (zeros added last).
         blocks = whole()
         x = jax.lax.cond(jnp.asarray(symmetric),
-                         lambda: sparsax.solve(*coo_of_blocks(model, *blocks, upper=True), b64),
-                         lambda: sparsax.lu_solve(*coo_of_blocks(model, *blocks), b64))
+                         lambda: sparsax.solve(*coo_of_blocks(model, *blocks, upper=True,
+                                                              index=up), b64),
+                         lambda: sparsax.lu_solve(*coo_of_blocks(model, *blocks, index=both), b64))
         return x.astype(R.dtype).reshape(R.shape)
     a, b, B, k = terms
-    sym = stiffness_blocks(model, sub, a, b, B, B, k, diag)
-    upper = coo_of_blocks(model, *sym, upper=True)
+
+    def symmetric_part():  # K_s's blocks and the triplets of its upper triangle
+        sym = stiffness_blocks(model, sub, a, b, B, B, k, diag)
+        return sym, coo_of_blocks(model, *sym, upper=True, index=up)
 
     def cholesky():
-        return sparsax.solve(*upper, b64)
+        # The triplets alone, formed here: formed before the choice, the secant also
+        # formed the block list that only GMRES reads (XLA formed the triplets' values
+        # from the springs again beside it: one loop over the pairs' blocks more, 1.2-1.5
+        # ms an iteration on seed example 2).
+        return sparsax.solve(*symmetric_part()[1], b64)
 
     if coupling is None:
         x = cholesky()
     else:
         def slip():
-            # K's triplets for the fallback are formed here, outside _slip_gmres's cond:
-            # formed inside its untaken branch, JAX 0.10 lowered the program with a
-            # sparsax call untyped (then GMRES's factor-token call), which XLA refused
-            # (seen where the scene's arrays are constants of an outer jit).
-            whole_coo = coo_of_blocks(model, *whole())
+            sym, upper = symmetric_part()
             return _slip_gmres(model, sparsax, sym, upper, coupling, b64,
-                               lambda: sparsax.lu_solve(*whole_coo, b64))
+                               lambda: sparsax.lu_solve(*coo_of_blocks(model, *whole(), index=both),
+                                                        b64))
 
         x = jax.lax.cond(jnp.asarray(symmetric), cholesky, slip)
     return x.astype(R.dtype).reshape(R.shape)
@@ -614,29 +660,39 @@ def _gmres(matvec, precond, b, rtol, m):
     return precond(y @ V[:m])
 
 
-def coo_of_blocks(model: Model, rows, cols, blocks, upper=False):
+def coo_of_blocks(model: Model, rows, cols, blocks, upper=False, index=None):
     """COO triplets (int32 rows, int32 columns, float64 values) of the (D, D) blocks of
     :func:`stiffness_blocks`, as sparsax takes them (duplicates are summed there).
 
     ``upper``: of a symmetric matrix, only the off-diagonal blocks above the diagonal
     (of each pair, (first, second) or (second, first)) with the diagonal blocks, half
-    the triplets: CHOLMOD reads the upper triangle alone.
+    the triplets: CHOLMOD reads the upper triangle alone. ``index``: their (Ai, Aj)
+    formed before (:func:`sparse_pattern`), else formed here (:func:`coo_index`).
     """
     if upper:
-        M = (rows.shape[0] - model.n_blocks) // 2
-        below = rows[:M] > cols[:M]
+        blocks = _upper(model, rows, cols, blocks)
+    Ai, Aj = coo_index(model, rows, cols, upper) if index is None else index
+    return Ai, Aj, blocks.reshape(-1).astype(jnp.float64)
 
-        def pick(x):
-            take = below.reshape((M,) + (1,) * (x.ndim - 1))
-            return jnp.concatenate([jnp.where(take, x[M:2 * M], x[:M]), x[2 * M:]])
 
-        rows, cols, blocks = pick(rows), pick(cols), pick(blocks)
+def _upper(model: Model, rows, cols, x):
+    """``x``, :func:`stiffness_blocks`'s blocks (or their rows or columns), in the upper
+    triangle: of each pair's (first, second) and (second, first) the one above the
+    diagonal, then the diagonal blocks."""
+    M = (rows.shape[0] - model.n_blocks) // 2
+    take = (rows[:M] > cols[:M]).reshape((M,) + (1,) * (x.ndim - 1))
+    return jnp.concatenate([jnp.where(take, x[M:2 * M], x[:M]), x[2 * M:]])
+
+
+def coo_index(model: Model, rows, cols, upper=False):
+    """(Ai, Aj), int32: the COO rows and columns of :func:`coo_of_blocks`'s triplets."""
+    if upper:
+        rows, cols = _upper(model, rows, cols, rows), _upper(model, rows, cols, cols)
     D = model.ndof
-    shape = blocks.shape
+    shape = rows.shape + (D, D)
     Ai = jnp.broadcast_to(D * rows[:, None, None] + jnp.arange(D)[:, None], shape)
     Aj = jnp.broadcast_to(D * cols[:, None, None] + jnp.arange(D)[None, :], shape)
-    return (Ai.reshape(-1).astype(jnp.int32), Aj.reshape(-1).astype(jnp.int32),
-            blocks.reshape(-1).astype(jnp.float64))
+    return Ai.reshape(-1).astype(jnp.int32), Aj.reshape(-1).astype(jnp.int32)
 
 
 def sparse_lu(model: Model, rows, cols, blocks):

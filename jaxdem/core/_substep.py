@@ -61,7 +61,7 @@ from jaxdem.core._contact import (
     narrow_phase,
     remap_history,
 )
-from jaxdem.core._linsolve import CG_RTOL_MAX, CG_RTOL_MIN, linear_solve
+from jaxdem.core._linsolve import CG_RTOL_MAX, CG_RTOL_MIN, linear_solve, sparse_pattern
 from jaxdem.core._springs import (
     Bolts,
     Packing,
@@ -273,6 +273,9 @@ def _newton(model: Model, sub: Sub, st0, warm=False):
     def merit(ev, tol):
         return jnp.sum(jnp.where(sub.free, (block_residual(model, ev.R) / tol) ** 2, 0.0))
 
+    # The sparse solve's triplet indices, the same in every iteration of the sub-step.
+    pattern = sparse_pattern(model, sub) if model.linear_solver == "sparse" else None
+
     def body(c: Iterate) -> Iterate:
         ev = evaluate(model, sub, c.du, c.frozen, c.frozen_state, c.st, band)
         changed = (ev.state != c.st) & sub.geo.active
@@ -422,7 +425,8 @@ def _newton(model: Model, sub: Sub, st0, warm=False):
             # The secant matrix is symmetric positive definite (CHOLMOD on the
             # sparse path), the slip tangent with its coupling is not.
             return linear_solve(model, sub, terms, ev.R, active=~c.done & ~converged,
-                                symmetric=~tangent, coupling=slip_coupling(sub, ev, tangent))
+                                symmetric=~tangent, coupling=slip_coupling(sub, ev, tangent),
+                                pattern=pattern)
 
         # The iterate that converged takes no step: its matrix is not
         # assembled nor factorised (one factorisation a sub-step). Under vmap
