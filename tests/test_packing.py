@@ -196,12 +196,13 @@ def test_rows_formed_for_the_touching_slots_and_the_balance_over_them_are_all_sl
 
 @pytest.mark.parametrize("places", ["packed", "all slots"])
 def test_sparse_pattern_formed_once_is_every_iterations_triplet_indices(places):
-    """The sparse path forms its triplets' indices once a sub-step
-    (``_linsolve.sparse_pattern``) and every iteration its values alone: the indices are
-    those that each iteration's matrix forms for itself: the secant, the slip tangent's
-    symmetric part and the whole slip tangent (a third group of terms, its coupling,
-    summed into the pairs' blocks), upper triangle and whole, bolts included. The
-    jointed tunnel with water and a bolt, 3 places a pair or every slot, at the first
+    """The sparse path forms its triplets' indices and the springs' rows laid out by pair
+    once a sub-step (``_linsolve.sparse_pattern``), and every iteration the values alone:
+    the indices are those that each iteration's matrix forms for itself: the secant, the
+    slip tangent's symmetric part and the whole slip tangent (a third group of terms,
+    its coupling, summed into the pairs' blocks), upper triangle and whole, bolts
+    included; the blocks summed from the rows laid out before are the same, bit for bit.
+    The jointed tunnel with water and a bolt, 3 places a pair or every slot, at the first
     sub-step's answer."""
     from jaxdem.core import _linsolve
     from jaxdem.core._springs import slip_coupling, stiffness_terms, with_coupling
@@ -218,10 +219,14 @@ def test_sparse_pattern_formed_once_is_every_iterations_triplet_indices(places):
     band = force_scales(mdl, sub)[1]
     ev = evaluate(mdl, sub, c.du, jnp.zeros(st0.shape, bool), c.frozen_state, c.st, band)
     diag = _linsolve.pseudo_mass_diagonal(mdl, sub)
-    up, both = _linsolve.sparse_pattern(mdl, sub)
+    up, both, paired = _linsolve.sparse_pattern(mdl, sub)
     for tangent in (False, True):
         a, b, B, k = stiffness_terms(mdl, sub, ev, tangent, None)
         sym = _linsolve.stiffness_blocks(mdl, sub, a, b, B, B, k, diag)
+        # The springs' rows laid out by pair once a sub-step: the same blocks, bit for bit.
+        for x, y in zip(_linsolve.stiffness_blocks(mdl, sub, a, b, B, B, k, diag, paired), sym,
+                        strict=True):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
         coupling = slip_coupling(sub, ev, jnp.asarray(tangent))
         whole = _linsolve.stiffness_blocks(mdl, sub, *with_coupling((a, b, B, k), coupling,
                                                                      sub.geo.a.shape[0]), diag)

@@ -21,6 +21,7 @@ import contextlib
 import functools
 import threading
 import time
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -60,7 +61,7 @@ def _unsymmetric(sub: Sub, terms, coupling):
     return with_coupling(terms, coupling, sub.geo.a.shape[0])
 
 
-def stiffness_blocks(model: Model, sub: Sub, a, b, L, Rt, k, diag):
+def stiffness_blocks(model: Model, sub: Sub, a, b, L, Rt, k, diag, paired=None):
     """sum_m k_m L_m R_m^T + blockdiag(Kc) + diag(diag) as (D, D) blocks: (rows, cols, blocks).
 
     Block (rows[i], cols[i]) of the (N, N) block matrix gets ``blocks[i]``
@@ -76,30 +77,26 @@ def stiffness_blocks(model: Model, sub: Sub, a, b, L, Rt, k, diag):
     blocks, so they are summed into one (2 D, 2 D) block per pair first (a
     dense contraction): 2 V times fewer blocks than one per slot. Packed slots
     (``sub.packed``) are summed into the blocks of their pairs the same way, so
-    the matrix has the same pattern either way.
+    the matrix has the same pattern either way. ``paired``: the slots' rows L = Rt
+    of a symmetric matrix whose groups are the sub-step's rows Bn and Bs
+    (:func:`jaxdem.core._springs.stiffness_terms`), laid out by pair once a sub-step
+    (:func:`pair_rows`, :func:`sparse_pattern`): only k is then laid out here.
     """
     N, D = model.n_blocks, model.ndof
     S = sub.geo.a.shape[0]
-    V = model.n_vertices
     T = (k.shape[0] - n_bolt_terms(model)) // S
-    grid, slot, rows, cols = _block_layout(model, sub, a, b, T)
-    side1 = ((slot // V) % 2 == 1)[None, :, None]
-
-    def by_pair(x):
-        # (T S, 2 D) rows -> (T, P, m, 2 D): each pair's slots, their rows ordered (first
-        # block, second block) of the pair (side 1's halves swap), zero rows for the
-        # empty places (index S of the grid).
-        x = x[:T * S].reshape(T, S, 2 * D)
-        x = jnp.where(side1, jnp.concatenate([x[..., D:], x[..., :D]], axis=-1), x)
-        return jnp.concatenate([x, jnp.zeros((T, 1, 2 * D), x.dtype)], axis=1)[:, grid]
-
+    grid, _, rows, cols = _block_layout(model, sub, a, b, T)
     # Sum over the slots of each pair of k L R^T: elementwise products and a sum written
     # out (XLA fuses them into one loop), not P tiny matrix products, nor a scatter of
     # each slot's (2 D, 2 D) product: on seed example 2's 36,864 packed places that
     # product alone is 42 MB, and its segment sum took 23 ms against 4 (of a Newton
     # iteration's 70); XLA's CPU reduction over an axis of a (T, ...) product also took
     # 40 times as long (10 ms against 0.24 on the demo tunnel).
-    kL, R = by_pair(k[:, None] * L), by_pair(Rt)
+    if paired is None:
+        kL, R = pair_rows(model, sub, k[:, None] * L, T), pair_rows(model, sub, Rt, T)
+    else:
+        # The same products k L, of the values laid out: bit for bit the same blocks.
+        kL, R = _by_pair(model, sub, k[:T * S].reshape(T, S))[..., None] * paired, paired
     Kp = sum(kL[t, :, i, :, None] * R[t, :, i, None, :]
              for t in range(T) for i in range(grid.shape[1]))
     # The rest (bolts): a (2 D, 2 D) block per term.
@@ -134,14 +131,10 @@ def _block_layout(model: Model, sub: Sub, a, b, T: int):
     N = model.n_blocks
     S = sub.geo.a.shape[0]
     V = model.n_vertices
+    grid, slot = _grid(model, sub)
     if sub.packed is None:
-        P = S // (2 * V)
-        grid = jnp.arange(S).reshape(P, 2 * V)
-        slot = jnp.arange(S)
         first, second = a[:S:2 * V], b[:S:2 * V]
     else:
-        # Each pair's packed slots side by side (:func:`jaxdem.core._substep.pack_slots`).
-        grid, slot = sub.packed.grid, sub.packed.slot
         first, second = sub.packed.first, sub.packed.second
     touching = jnp.any(jnp.append(sub.geo.active, False)[grid], axis=1)
     # A candidate pair that does not touch couples nothing: its (zero) blocks go to its
@@ -155,23 +148,67 @@ def _block_layout(model: Model, sub: Sub, a, b, T: int):
     return grid, slot, rows, cols
 
 
-def sparse_pattern(model: Model, sub: Sub):
-    """The COO indices of a sub-step's iteration matrix on the sparse path, formed once a
-    sub-step rather than once an iteration: ((Ai, Aj) of its upper triangle, (Ai, Aj) of
-    the whole), as :func:`coo_of_blocks` forms them (``index``).
+def _grid(model: Model, sub: Sub):
+    """(grid, slot): each pair's slots side by side, (pairs, m), index S where none (the
+    packed ones, :func:`jaxdem.core._substep.pack_slots`, or all 2 V of each candidate
+    pair), and their places in the slot list."""
+    if sub.packed is not None:
+        return sub.packed.grid, sub.packed.slot
+    S = sub.geo.a.shape[0]
+    V = model.n_vertices
+    return jnp.arange(S).reshape(S // (2 * V), 2 * V), jnp.arange(S)
+
+
+def _by_pair(model: Model, sub: Sub, x):
+    """(T, S, ...) values of the slots -> (T, pairs, m, ...) laid out by :func:`_grid`,
+    zero at the empty places."""
+    grid = _grid(model, sub)[0]
+    return jnp.concatenate([x, jnp.zeros(x.shape[:1] + (1,) + x.shape[2:], x.dtype)],
+                           axis=1)[:, grid]
+
+
+def pair_rows(model: Model, sub: Sub, x, T: int):
+    """(T S, 2 D) rows of T groups of the slots -> (T, pairs, m, 2 D): each pair's slots
+    (:func:`_grid`), their rows ordered (first block, second block) of the pair (side 1's
+    halves swap), zero rows for the empty places."""
+    S = sub.geo.a.shape[0]
+    D, V = model.ndof, model.n_vertices
+    side1 = ((_grid(model, sub)[1] // V) % 2 == 1)[None, :, None]
+    x = x[:T * S].reshape(T, S, 2 * D)
+    return _by_pair(model, sub, jnp.where(side1, jnp.concatenate([x[..., D:], x[..., :D]],
+                                                                 axis=-1), x))
+
+
+class SparsePattern(NamedTuple):
+    """What every iteration matrix of a sub-step on the sparse path shares
+    (:func:`sparse_pattern`)."""
+
+    upper: tuple  # (Ai, Aj) of the triplets of its upper triangle (:func:`coo_of_blocks`)
+    whole: tuple  # (Ai, Aj) of the triplets of the whole matrix
+    paired: jax.Array  # (2, pairs, m, 2 D): the slots' rows Bn, Bs laid out by pair
+
+
+def sparse_pattern(model: Model, sub: Sub) -> SparsePattern:
+    """What a sub-step's iteration matrices share on the sparse path, formed once a
+    sub-step rather than once an iteration: the triplets' indices, and the rows of the
+    springs' terms laid out by pair.
 
     The blocks' places depend on the sub-step's slots and bolts alone
     (:func:`_block_layout`), not on the springs' states, nor on the slip coupling (its
-    terms are the slots' own: summed into the same pairs' blocks). Formed in every
-    iteration they were two loops over the triplets (on seed example 2, 267,264 of them,
-    0.55-0.6 ms each).
+    terms are the slots' own: summed into the same pairs' blocks); the rows of the
+    secant's and the slip tangent's symmetric part are the sub-step's Bn and Bs
+    (:func:`jaxdem.core._springs.stiffness_terms`), their stiffness alone changes. Formed
+    in every iteration, the indices were two loops over the triplets (on seed example 2,
+    267,264 of them, 0.55-0.6 ms each) and the rows' layout 1 ms of the 2 ms in which the
+    pairs' blocks were summed.
     """
     a, b = sub.geo.a, sub.geo.b
     if model.n_bolts:
         rep = lambda x: jnp.repeat(x, 2 * model.ndof)  # noqa: E731  (as _bolt_terms)
         a, b = jnp.concatenate([a, rep(sub.bolt.a)]), jnp.concatenate([b, rep(sub.bolt.b)])
     _, _, rows, cols = _block_layout(model, sub, a, b, 1)
-    return coo_index(model, rows, cols, upper=True), coo_index(model, rows, cols)
+    return SparsePattern(coo_index(model, rows, cols, upper=True), coo_index(model, rows, cols),
+                         pair_rows(model, sub, jnp.concatenate([sub.Bn, sub.Bs]), 2))
 
 
 def blocks_times(model: Model, rows, cols, blocks, x):
@@ -442,7 +479,7 @@ def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True,
     ``pattern``: the triplets' indices (:func:`sparse_pattern`), else formed here.
     """
     diag = pseudo_mass_diagonal(model, sub)
-    up, both = (None, None) if pattern is None else pattern
+    up, both, paired = (None, None, None) if pattern is None else pattern
     rhs = R.reshape(-1)
     sparsax = _sparsax()
 
@@ -477,7 +514,7 @@ def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True,
     a, b, B, k = terms
 
     def symmetric_part():  # K_s's blocks and the triplets of its upper triangle
-        sym = stiffness_blocks(model, sub, a, b, B, B, k, diag)
+        sym = stiffness_blocks(model, sub, a, b, B, B, k, diag, paired)
         return sym, coo_of_blocks(model, *sym, upper=True, index=up)
 
     def cholesky():
