@@ -7,7 +7,8 @@ it is symmetric and large: :func:`solve_dense`; in float32 refined in float64,
 inside the program, :func:`_solve_sparse`) and "cg" (matrix-free preconditioned
 conjugate gradients, :func:`solve_cg`); and the assembly they share
 (:func:`stiffness_blocks`, :func:`assemble_dense` and :func:`dense_of`,
-:func:`host_matrix`).
+:func:`host_matrix`), with what a sub-step's sparse matrices share formed once a
+sub-step (:func:`sparse_pattern`).
 
 Data flow: takes the rank-one terms of :mod:`jaxdem.core._springs` and the
 gather/scatter of :mod:`jaxdem.core.kinematics`; used by the Newton iteration
@@ -85,7 +86,7 @@ def stiffness_blocks(model: Model, sub: Sub, a, b, L, Rt, k, diag, paired=None):
     N, D = model.n_blocks, model.ndof
     S = sub.geo.a.shape[0]
     T = (k.shape[0] - n_bolt_terms(model)) // S
-    grid, _, rows, cols = _block_layout(model, sub, a, b, T)
+    grid, rows, cols = _block_layout(model, sub, a, b, T)
     # Sum over the slots of each pair of k L R^T: elementwise products and a sum written
     # out (XLA fuses them into one loop), not P tiny matrix products, nor a scatter of
     # each slot's (2 D, 2 D) product: on seed example 2's 36,864 packed places that
@@ -120,18 +121,18 @@ def stiffness_blocks(model: Model, sub: Sub, a, b, L, Rt, k, diag, paired=None):
 
 
 def _block_layout(model: Model, sub: Sub, a, b, T: int):
-    """Where :func:`stiffness_blocks` puts its blocks: (grid, slot, rows, cols).
+    """Where :func:`stiffness_blocks` puts its blocks: (grid, rows, cols).
 
-    ``grid`` (pairs, m) holds each pair's slots (index S: none), ``slot`` their places
-    in the term list; ``rows`` and ``cols`` the block row and column of each block:
-    (first, second) of the pairs and bolts, then (second, first), then the N diagonal
-    blocks. ``a``, ``b``: the blocks of the terms (T groups of the S slots, then the
-    bolts'). They depend on the sub-step alone (:func:`sparse_pattern`).
+    ``grid`` (pairs, m) holds each pair's slots (:func:`_grid`); ``rows`` and ``cols``
+    the block row and column of each block: (first, second) of the pairs and bolts, then
+    (second, first), then the N diagonal blocks. ``a``, ``b``: the blocks of the terms (T
+    groups of the S slots, then the bolts'). They depend on the sub-step alone
+    (:func:`sparse_pattern`).
     """
     N = model.n_blocks
     S = sub.geo.a.shape[0]
     V = model.n_vertices
-    grid, slot = _grid(model, sub)
+    grid = _grid(model, sub)[0]
     if sub.packed is None:
         first, second = a[:S:2 * V], b[:S:2 * V]
     else:
@@ -145,7 +146,7 @@ def _block_layout(model: Model, sub: Sub, a, b, T: int):
     first, second = jnp.concatenate([first, a[T * S:]]), jnp.concatenate([second, b[T * S:]])
     rows = jnp.concatenate([first, second, jnp.arange(N)])
     cols = jnp.concatenate([second, first, jnp.arange(N)])
-    return grid, slot, rows, cols
+    return grid, rows, cols
 
 
 def _grid(model: Model, sub: Sub):
@@ -206,7 +207,7 @@ def sparse_pattern(model: Model, sub: Sub) -> SparsePattern:
     if model.n_bolts:
         rep = lambda x: jnp.repeat(x, 2 * model.ndof)  # noqa: E731  (as _bolt_terms)
         a, b = jnp.concatenate([a, rep(sub.bolt.a)]), jnp.concatenate([b, rep(sub.bolt.b)])
-    _, _, rows, cols = _block_layout(model, sub, a, b, 1)
+    _, rows, cols = _block_layout(model, sub, a, b, 1)
     return SparsePattern(coo_index(model, rows, cols, upper=True), coo_index(model, rows, cols),
                          pair_rows(model, sub, jnp.concatenate([sub.Bn, sub.Bs]), 2))
 

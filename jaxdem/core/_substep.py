@@ -273,7 +273,8 @@ def _newton(model: Model, sub: Sub, st0, warm=False):
     def merit(ev, tol):
         return jnp.sum(jnp.where(sub.free, (block_residual(model, ev.R) / tol) ** 2, 0.0))
 
-    # The sparse solve's triplet indices, the same in every iteration of the sub-step.
+    # What the sparse solve's matrices share in every iteration of the sub-step (their
+    # triplets' indices, the springs' rows laid out by pair), formed once.
     pattern = sparse_pattern(model, sub) if model.linear_solver == "sparse" else None
 
     def body(c: Iterate) -> Iterate:
