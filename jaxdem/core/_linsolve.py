@@ -44,8 +44,9 @@ def linear_solve(model: Model, sub: Sub, terms, R, rtol=None, active=True, symme
     is the relative residual at which CG stops (:func:`solve_cg`); ``symmetric`` (a
     traced bool: False where the coupling is on) is for the direct paths
     (:func:`_solve_sparse`, :func:`solve_dense`), ``active`` for the sparse one. The
-    choice is static: only the chosen path is traced. ``pattern``: the sparse path's COO
-    indices of this sub-step (:func:`sparse_pattern`), where the caller formed them once.
+    choice is static: only the chosen path is traced. ``pattern``: what the sparse path's
+    matrices of this sub-step share (:func:`sparse_pattern`), where the caller formed it
+    once.
     """
     if model.linear_solver == "cg":
         return solve_cg(model, sub, terms, R, rtol)
@@ -477,7 +478,8 @@ def _solve_sparse(model: Model, sub: Sub, terms, R, active=True, symmetric=True,
     (:func:`stiffness_blocks`) and handed over as COO triplets (duplicates summed,
     the blocks of unused pairs zero); float32 scenes are solved in float64.
     Without sparsax, SciPy's SuperLU on the host (:func:`_host_sparse_solve`).
-    ``pattern``: the triplets' indices (:func:`sparse_pattern`), else formed here.
+    ``pattern``: the triplets' indices and the springs' rows laid out by pair
+    (:func:`sparse_pattern`), else formed here.
     """
     diag = pseudo_mass_diagonal(model, sub)
     up, both, paired = (None, None, None) if pattern is None else pattern
