@@ -130,8 +130,9 @@ def test_sparse_solve_of_one_iteration_matches_dense_lu(path, monkeypatch):
     assert scale > 0
     np.testing.assert_allclose(np.asarray(x_sparse), np.asarray(x_dense), rtol=0,
                                atol=1e-10 * scale)
-    # With the triplets' indices formed once a sub-step, as the Newton loop hands them
-    # over: the same answer, bit for bit.
+    # With what the sub-step's matrices share formed once (the triplets' indices, the
+    # springs' rows laid out by pair), as the Newton loop hands it over: the same answer,
+    # bit for bit.
     x_given = jax.jit(lambda r: _solve_sparse(
         mdl, sub, terms, r, symmetric=jnp.asarray(coupling is None), coupling=coupling,
         pattern=_linsolve.sparse_pattern(mdl, sub)))(R)
