@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdem.core._springs import Sub, n_bolt_terms, with_coupling
+from jaxdem.core._springs import Sub, bolt_term_blocks, n_bolt_terms, with_coupling
 from jaxdem.core.kinematics import gather_pairs, scatter_pairs
 from jaxdem.core.state import Model
 
@@ -206,8 +206,8 @@ def sparse_pattern(model: Model, sub: Sub) -> SparsePattern:
     """
     a, b = sub.geo.a, sub.geo.b
     if model.n_bolts:
-        rep = lambda x: jnp.repeat(x, 2 * model.ndof)  # noqa: E731  (as _bolt_terms)
-        a, b = jnp.concatenate([a, rep(sub.bolt.a)]), jnp.concatenate([b, rep(sub.bolt.b)])
+        ba, bb = bolt_term_blocks(model, sub.bolt)
+        a, b = jnp.concatenate([a, ba]), jnp.concatenate([b, bb])
     _, rows, cols = _block_layout(model, sub, a, b, 1)
     return SparsePattern(coo_index(model, rows, cols, upper=True), coo_index(model, rows, cols),
                          pair_rows(model, sub, jnp.concatenate([sub.Bn, sub.Bs]), 2))

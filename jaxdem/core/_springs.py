@@ -378,14 +378,19 @@ def _bolt_terms(model: Model, sub: Sub, ev: Springs, consistent):
     if model.linear_solver == "cg":
         lam = jnp.maximum(lam, 0.0)
     nb = g.shape[0]
-    rep = lambda x: jnp.repeat(x, 2 * D)  # noqa: E731
-    return (rep(bolt.a), rep(bolt.b), jnp.swapaxes(vec, 1, 2).reshape(nb * 2 * D, 2 * D),
+    return (*bolt_term_blocks(model, bolt), jnp.swapaxes(vec, 1, 2).reshape(nb * 2 * D, 2 * D),
             lam.reshape(-1))
 
 
 def n_bolt_terms(model: Model) -> int:
     """Rank-one terms of the bolts at the end of a term list (:func:`_bolt_terms`)."""
     return model.n_bolts * 2 * model.ndof
+
+
+def bolt_term_blocks(model: Model, bolt: Bolts):
+    """The blocks (a, b) of the bolts' rank-one terms (:func:`_bolt_terms`): each bolt's
+    two blocks once for each of its 2 D terms, in the bolts' order."""
+    return jnp.repeat(bolt.a, 2 * model.ndof), jnp.repeat(bolt.b, 2 * model.ndof)
 
 
 def slip_coupling(sub: Sub, ev: Springs, on):
