@@ -24,17 +24,61 @@ reaction curve), :mod:`jaxdem.reliability` (FORM), :mod:`jaxdem.vtk`,
 :mod:`jaxdem.plots`, :mod:`jaxdem.cli`, :mod:`jaxdem.config`, :mod:`jaxdem.geometry`.
 """
 
-from jaxdem import config
-from jaxdem.batch import BatchResult, solve_batch
-from jaxdem.core.status import Status
-from jaxdem.differentiable import differentiable
-from jaxdem.fos import FactorOfSafety, factor_of_safety
-from jaxdem.grc import GroundReaction, ground_reaction
-from jaxdem.reliability import Reliability, reliability
-from jaxdem.results import Result
-from jaxdem.scene import Scene, SceneError, load_scene
-from jaxdem.solver import solve
-from jaxdem.sweep import SweepResult, sweep
+import importlib
+import sys
+import types
+
+_EXPORTS = {
+    "BatchResult": "jaxdem.batch", "solve_batch": "jaxdem.batch",
+    "Status": "jaxdem.core.status",
+    "differentiable": "jaxdem.differentiable",
+    "FactorOfSafety": "jaxdem.fos", "factor_of_safety": "jaxdem.fos",
+    "GroundReaction": "jaxdem.grc", "ground_reaction": "jaxdem.grc",
+    "Reliability": "jaxdem.reliability", "reliability": "jaxdem.reliability",
+    "Result": "jaxdem.results",
+    "Scene": "jaxdem.scene", "SceneError": "jaxdem.scene", "load_scene": "jaxdem.scene",
+    "solve": "jaxdem.solver",
+    "SweepResult": "jaxdem.sweep", "sweep": "jaxdem.sweep",
+}
+"""The public names and the modules they come from, imported at their first use: ``import
+jaxdem`` itself imports neither JAX nor the solver (0.7 and 0.3 s), so that the command
+line, whose own modules need neither, reads its scene file and starts loading the stored
+programs of its last run while the solver's modules are imported
+(:func:`jaxdem.core.compile_cache.warm_start`). A subpackage or module (``jaxdem.core``,
+``jaxdem.solver``) is imported at its first use the same way."""
+
+
+def __getattr__(name: str):
+    module = _EXPORTS.get(name)
+    try:
+        value = (getattr(importlib.import_module(module), name) if module is not None
+                 else importlib.import_module(f"{__name__}.{name}"))
+    except ModuleNotFoundError as err:
+        if err.name != f"{__name__}.{name}":
+            raise
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}") from None
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
+
+
+class _Package(types.ModuleType):
+    """The package's module: the import system binds a submodule on its package once it is
+    imported (``jaxdem.sweep`` the module); the functions ``sweep``, ``reliability`` and
+    ``differentiable`` keep those names over the modules they live in, as they did when
+    this file imported them."""
+
+    def __setattr__(self, name, value):
+        if name in _EXPORTS and isinstance(value, types.ModuleType):
+            return
+        super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Package
+
 
 __all__ = ["BatchResult", "FactorOfSafety", "GroundReaction", "Reliability", "Result", "Scene",
            "SceneError", "Status", "SweepResult", "config", "differentiable", "factor_of_safety",

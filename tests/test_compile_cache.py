@@ -7,6 +7,7 @@ collects it instead of compiling it again. ``while_compiling`` runs host work
 """
 
 import dataclasses
+import json
 import random
 import threading
 
@@ -74,6 +75,74 @@ def test_a_stored_program_is_loaded_beside_the_caller(xla_compiles, monkeypatch,
     compiled, _ = compile_cache.compiled_program(f, x)
     assert len(loads) == 1 and loads[0].startswith("jaxdem-compile") and not xla_compiles
     np.testing.assert_array_equal(np.asarray(compiled(x)), 3.0 * np.arange(9.0) - 2.0)
+
+
+
+def test_a_warm_start_loads_the_last_runs_programs_before_they_are_asked_for(
+        xla_compiles, monkeypatch, tmp_path):
+    """``warm_start`` loads, on threads of its own, the stored programs that the last run
+    with the same fingerprint used (``remember_run`` records them), before the scene is
+    built; a program is taken by its key's file name alone: one of another run, or whose
+    file is gone, is never taken for it."""
+    monkeypatch.setattr(compile_cache, "_program_dir", lambda: tmp_path / "programs")
+    for name, empty in (("_EARLY", {}), ("_USED", []), ("_SEEN", set()), ("_RUN", [])):
+        monkeypatch.setattr(compile_cache, name, empty)
+    f = compile_cache.on_disk("test-warm-f")(jax.jit(lambda x: 5.0 * x + 1.0))
+    g = compile_cache.on_disk("test-warm-g")(jax.jit(lambda x: x * x))
+    x = jnp.arange(11.0)
+    compile_cache.warm_start("run-a")  # nothing recorded yet: nothing to load
+    assert not compile_cache._EARLY
+    compile_cache.compiled_program(f, x)
+    compile_cache.remember_run()
+    (f_file,) = (tmp_path / "programs").glob("*.pkl")
+    compile_cache.warm_start("run-b")
+    compile_cache.compiled_program(g, x)
+    compile_cache.remember_run()
+    g_file = next(p for p in (tmp_path / "programs").glob("*.pkl") if p != f_file)
+
+    loads = []
+    read = compile_cache._read_program
+
+    def counted(path):
+        loads.append((path.name, threading.current_thread().name))
+        return read(path)
+
+    monkeypatch.setattr(compile_cache, "_read_program", counted)
+    for fn in (f, g):  # a new process: nothing compiled in memory
+        compile_cache._COMPILED.pop(compile_cache._key(fn, (x,), {}, False)[0])
+    compile_cache._SEEN.clear()
+    xla_compiles.clear()
+    compile_cache.warm_start("run-a")
+    compile_cache._EARLY[f_file.name].result(timeout=60)
+    assert loads == [(f_file.name, "jaxdem-warm-start")]
+    compiled, _ = compile_cache.compiled_program(f, x)
+    np.testing.assert_array_equal(np.asarray(compiled(x)), 5.0 * np.arange(11.0) + 1.0)
+    assert not compile_cache._EARLY and not xla_compiles and len(loads) == 1
+
+    # A program this process has asked for is in memory: not loaded early again.
+    compile_cache.warm_start("run-a")
+    assert not compile_cache._EARLY and len(loads) == 1
+
+    # run-b's program, loaded early, is not f's: f's own file is loaded for f.
+    compile_cache._COMPILED.pop(compile_cache._key(f, (x,), {}, False)[0])
+    compile_cache._SEEN.clear()
+    compile_cache.warm_start("run-b")
+    compile_cache._EARLY[g_file.name].result(timeout=60)
+    compiled, _ = compile_cache.compiled_program(f, x)
+    np.testing.assert_array_equal(np.asarray(compiled(x)), 5.0 * np.arange(11.0) + 1.0)
+    assert [name for name, _ in loads[1:]] == [g_file.name, f_file.name]
+    assert list(compile_cache._EARLY) == [g_file.name] and not xla_compiles
+    compile_cache.remember_run()  # the run's end lets go of it, and records f's alone
+    assert not compile_cache._EARLY
+    recent = json.loads((tmp_path / "programs" / "recent.json").read_text())
+    assert recent == {"run-a": [f_file.name], "run-b": [f_file.name]}
+
+    # A recorded program whose file is gone is not loaded; an unknown run loads nothing.
+    compile_cache._SEEN.clear()
+    f_file.unlink()
+    compile_cache.warm_start("run-b")
+    compile_cache.warm_start("run-c")
+    assert not compile_cache._EARLY and len(loads) == 3
 
 
 def test_a_prefetched_program_never_collected_is_let_go():

@@ -52,6 +52,37 @@ def test_import_changes_nothing():
     assert seen["x64"] is False and seen["cache"] and seen["env"] and all(seen["api"])
 
 
+
+def test_import_of_the_package_and_command_line_loads_no_jax_and_names_keep_their_objects():
+    """``import jaxdem`` and ``jaxdem.cli`` import neither JAX nor the solver (the command
+    line reads its scene and starts loading stored programs while they are imported:
+    jaxdem.core.compile_cache.warm_start); a public name is imported at its first use,
+    and ``sweep``, ``reliability`` and ``differentiable`` stay the functions once their
+    modules of the same names are imported, as ``from jaxdem.sweep import ...`` does."""
+    seen = _fresh("""
+        import json, sys, types
+        import jaxdem, jaxdem.cli
+        light = not any(m == "jax" or m.startswith(("jax.", "jaxdem.core", "jaxdem.solver"))
+                        for m in sys.modules)
+        from jaxdem.sweep import SweepResult
+        import jaxdem.reliability, jaxdem.differentiable
+        names = {n: not isinstance(getattr(jaxdem, n), types.ModuleType)
+                 for n in ("sweep", "reliability", "differentiable", "solve", "Status")}
+        from jaxdem import *
+        star = callable(sweep) and callable(reliability) and callable(differentiable)
+        try:
+            jaxdem.no_such_name
+            missing = False
+        except AttributeError:
+            missing = True
+        print(json.dumps(dict(light=light, names=names, star=star, missing=missing,
+                              module=isinstance(jaxdem.solver, types.ModuleType))))
+    """)
+    assert seen["light"], "import jaxdem imported JAX or the solver"
+    assert all(seen["names"].values()), seen["names"]
+    assert seen["star"] and seen["missing"] and seen["module"]
+
+
 def test_solve_runs_in_float64_and_restores_the_callers_setting():
     seen = _fresh(f"""
         import json, os

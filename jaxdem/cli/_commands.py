@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import json
 import math
 import os
@@ -339,13 +340,17 @@ def _solve_and_report(path: Path, out: Path, overrides: dict[str, Any],
                       vtk: bool = False, figures: bool = True,
                       view: tuple[float, ...] | None = None) -> int:
     _mark("start")
+    from jaxdem.core import compile_cache
+
+    fingerprint = _fingerprint(path, overrides)
+    if fingerprint is not None:
+        compile_cache.warm_start(fingerprint)
     scene = _load(path, overrides)
     _check_out(out)
     print(f"{scene_name(scene, path, overrides)}: {scene_summary(scene)}")
     _mark("loaded")
 
     from jaxdem import solver
-    from jaxdem.core import compile_cache
 
     if figures:
         compile_cache.while_compiling(_prepare_figures)
@@ -354,6 +359,7 @@ def _solve_and_report(path: Path, out: Path, overrides: dict[str, Any],
     with bar:
         result = solver.solve(scene, progress=bar)
     _mark("solved")
+    compile_cache.remember_run()
 
     data = result.to_dict()
     if overrides:
@@ -382,6 +388,17 @@ def _solve_and_report(path: Path, out: Path, overrides: dict[str, Any],
     _write_phases({"timing": dict(getattr(result, "timing", None) or {}),
                    "increment": dict(getattr(solver, "COMPILE_TIMES", {}))})
     return EXIT_OK if result.status in SOLVED_STATUSES else EXIT_NOT_CONVERGED
+
+
+def _fingerprint(path: Path, overrides: dict[str, Any]) -> str | None:
+    """What decides a run's programs, known before the scene is built: the scene file's
+    bytes and the ``--set`` values (:func:`jaxdem.core.compile_cache.warm_start`); None
+    for a file that cannot be read (``_load`` says why)."""
+    try:
+        text = path.read_bytes()
+    except OSError:
+        return None
+    return hashlib.sha256(text + repr(sorted(overrides.items())).encode()).hexdigest()
 
 
 def _load(path: Path, overrides: dict[str, Any]) -> Any:

@@ -30,6 +30,12 @@ stored on disk the same way: a warm run traces and lowers no program at all (JAX
 lowered and looked each up in its cache in every run, 10-30 ms each and 60 ms for a
 process's first lowering: 0.08-0.18 s of a 1.8-2.3 s warm run of seed example 4 wet or the demo).
 
+A warm start (:func:`warm_start`, the command line's): the stored programs that the last
+run of the same scene file used (``programs/recent.json``) are loaded on background
+threads from the moment JAX is imported, before the solver's modules are imported and
+the scene is built, which is when their keys are known; :func:`_lower` takes a load by
+its key's file name, so a load of another run's program is wasted work, never wrong.
+
 Compilation beside other work: XLA compiles without Python's interpreter lock.
 :func:`prefetch` traces a program on the caller's thread and compiles it on a
 background one (the solver's increment, while the monitors' programs and the
@@ -50,6 +56,7 @@ import collections
 import concurrent.futures
 import functools
 import hashlib
+import json
 import os
 import pickle
 import random
@@ -236,24 +243,55 @@ def _load_program(path: Path):
     if not path.is_file():
         return None
     try:
-        from jax._src.lax.linalg import initialize_lapack
-        from jax.experimental import serialize_executable
-
-        blob, in_tree, out_tree, lapack = pickle.loads(zlib.decompress(path.read_bytes()))
-        # A loaded program that calls LAPACK (the dense LU, a bolt's eigenvalues) does so
-        # without a lowering that would have set up its kernels first: without this it
-        # crashes (the set-up imports SciPy's BLAS and LAPACK: 0.13 s, which a program
-        # without LAPACK, the sparse path's, does not pay). The same for the sparse
-        # solve's FFI targets, registered when sparsax is imported.
-        if lapack:
-            initialize_lapack()
-        try:
-            import sparsax  # noqa: F401
-        except ImportError:
-            pass
-        return serialize_executable.deserialize_and_load(blob, in_tree, out_tree)
+        blob, trees, lapack = _read_program(path)
+        return _program_of(_executable_of(blob, lapack), trees)
     except Exception:  # noqa: BLE001 - any failure: compile instead
         return None
+
+
+def _read_program(path: Path):
+    """A stored program's parts: the serialised executable, the pickled argument and result
+    trees apart (unpickling them imports the jaxdem modules of their types, which
+    :func:`warm_start`'s threads must not do beside the main thread's imports), and
+    whether it calls LAPACK."""
+    blob, trees, lapack = pickle.loads(zlib.decompress(path.read_bytes()))
+    return blob, trees, lapack
+
+
+def _executable_of(blob: bytes, lapack: bool):
+    """XLA's load of a serialised executable (it parses and links the program: 0.4-0.7 s for
+    the demo's increment, most of a warm run's wait), as JAX's
+    ``serialize_executable.deserialize_and_load`` does before it unpickles the trees:
+    (loaded executable, flat argument infos, no_kwargs). Imports no jaxdem module."""
+    import io
+
+    from jax._src.lax.linalg import initialize_lapack
+    from jax.experimental import serialize_executable
+
+    # A loaded program that calls LAPACK (the dense LU, a bolt's eigenvalues) does so
+    # without a lowering that would have set up its kernels first: without this it
+    # crashes (the set-up imports SciPy's BLAS and LAPACK: 0.13 s, which a program
+    # without LAPACK, the sparse path's, does not pay). The sparse solve's FFI targets,
+    # registered when sparsax is imported, must be there before XLA loads a program
+    # that calls them ("No FFI handler registered").
+    if lapack:
+        initialize_lapack()
+    try:
+        import sparsax  # noqa: F401
+    except ImportError:
+        pass
+    backend = jax.devices()[0].client
+    unloaded, args_info, no_kwargs = serialize_executable._JaxPjrtUnpickler(
+        io.BytesIO(blob), backend).load()
+    return unloaded.load(), args_info, no_kwargs
+
+
+def _program_of(executable, trees: bytes):
+    """The callable program of :func:`_executable_of`'s parts and the pickled trees."""
+    loaded, args_info, no_kwargs = executable
+    in_tree, out_tree = pickle.loads(trees)
+    return jax.stages.Compiled(loaded, [], in_tree.unflatten(args_info), out_tree,
+                               no_kwargs=no_kwargs)
 
 
 def _store_program(path: Path, compiled) -> None:
@@ -265,7 +303,8 @@ def _store_program(path: Path, compiled) -> None:
         from jax.experimental import serialize_executable
 
         lapack = "lapack_" in compiled.as_text()
-        data = zlib.compress(pickle.dumps((*serialize_executable.serialize(compiled), lapack)), 1)
+        blob, in_tree, out_tree = serialize_executable.serialize(compiled)
+        data = zlib.compress(pickle.dumps((blob, pickle.dumps((in_tree, out_tree)), lapack)), 1)
         path.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=path.parent, delete=False) as f:
             f.write(data)
@@ -283,6 +322,127 @@ def _prune(directory: Path, limit: int) -> None:
         total += f.stat().st_size
         if total > limit:
             f.unlink(missing_ok=True)
+
+
+RECENT_RUNS = 64
+"""Runs whose stored programs :func:`warm_start` remembers (the least recent forgotten)."""
+
+_RECENT_FILE = "recent.json"
+_EARLY: dict = {}  # a stored program's file name -> Future of its load started by warm_start
+_USED: list = []  # the file names of the stored programs this run asked for, in order
+_SEEN: set = set()  # those this process asked for: in memory already, not loaded early
+_RUN: list = []  # the fingerprint warm_start was given (remember_run records under it)
+
+
+def warm_start(fingerprint: str) -> None:
+    """Start loading, on two background threads, the stored programs that the last run with
+    ``fingerprint`` used (:func:`remember_run` records them), largest first.
+
+    A stored program is otherwise loaded once its key is known: once the scene is read,
+    its blocks generated and its model built (0.1-0.4 s of a warm run), after which the
+    main thread waits for the load (XLA parses and links the demo's increment in
+    0.5-0.7 s). ``fingerprint`` names what decides a run's programs without building
+    anything (the command line's: the scene file's bytes and the ``--set`` values). A
+    program is still taken only by its key (:func:`_lower` matches the file's name, made
+    of the key): an early load that no key asks for (the scene's capacities grew, the
+    source changed) is work wasted on a background thread, never a wrong program.
+    """
+    directory = _program_dir()
+    if directory is None:
+        return
+    _RUN[:] = [fingerprint]
+    with _LOCK:
+        _USED.clear()
+    try:
+        names = json.loads((directory / _RECENT_FILE).read_text()).get(fingerprint, [])
+        sizes = {name: (directory / name).stat().st_size for name in names
+                 if name not in _SEEN and (directory / name).is_file()}
+    except (OSError, ValueError, AttributeError, TypeError):
+        return
+    queue = collections.deque(sorted(sizes, key=sizes.get, reverse=True))
+    if not queue:
+        return
+    # The backend and the sparse solve's FFI targets here, on the caller's thread: the
+    # threads then import nothing that the caller may be importing at the same time.
+    jax.devices()
+    try:
+        import sparsax  # noqa: F401
+    except ImportError:
+        pass
+    with _LOCK:
+        for name in queue:
+            _EARLY.setdefault(name, concurrent.futures.Future())
+
+    def work():
+        while True:
+            try:
+                name = queue.popleft()
+            except IndexError:
+                return
+            future = _EARLY.get(name)
+            if future is None or not future.set_running_or_notify_cancel():
+                continue
+            try:
+                blob, trees, lapack = _read_program(directory / name)
+                future.set_result((_executable_of(blob, lapack), trees))
+            except BaseException:  # noqa: BLE001 - _lower loads it again
+                future.set_result(None)
+
+    for _ in range(min(2, len(queue))):
+        threading.Thread(target=work, daemon=True, name="jaxdem-warm-start").start()
+
+
+def _early_program(path: Path):
+    """The program at ``path`` that :func:`warm_start` loaded (waiting for its load), or None."""
+    with _LOCK:
+        future = _EARLY.pop(path.name, None)
+    if future is None or future.cancel():
+        return None
+    loaded = future.result()
+    if loaded is None:
+        return None
+    try:
+        return _program_of(*loaded)
+    except Exception:  # noqa: BLE001 - loaded again by the caller
+        return None
+
+
+def _note_used(path: Path) -> None:
+    with _LOCK:
+        if path.name not in _USED:
+            _USED.append(path.name)
+        _SEEN.add(path.name)
+
+
+def remember_run() -> None:
+    """Record the stored programs this run used under :func:`warm_start`'s fingerprint,
+    for the next run with it (at most :data:`RECENT_RUNS` runs are kept), and let go of
+    the early loads that no key asked for."""
+    directory = _program_dir()
+    if directory is None or not _RUN:
+        return
+    with _LOCK:
+        names = list(_USED)
+        for future in _EARLY.values():
+            future.cancel()
+        _EARLY.clear()
+    try:
+        path = directory / _RECENT_FILE
+        try:
+            recent = json.loads(path.read_text())
+            if not isinstance(recent, dict):
+                recent = {}
+        except (OSError, ValueError):
+            recent = {}
+        recent.pop(_RUN[0], None)
+        recent[_RUN[0]] = names
+        recent = dict(list(recent.items())[-RECENT_RUNS:])
+        directory.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile("w", dir=directory, delete=False, suffix=".tmp") as f:
+            json.dump(recent, f)
+        os.replace(f.name, path)
+    except OSError:
+        return
 
 
 def _key(fn, args, static, quick):
@@ -304,10 +464,12 @@ def _lower(fn, args, static, quick, leaves, tree):
     path = None
     if name is not None and directory is not None:
         path = directory / f"{_disk_key(name, tree, leaves, static, _options(quick))}.pkl"
+    if path is not None:
+        _note_used(path)
     if path is not None and path.is_file():
         def load():
             t = time.perf_counter()
-            compiled = _load_program(path)
+            compiled = _early_program(path) or _load_program(path)
             if compiled is not None:
                 _count(0.0, time.perf_counter() - t)
                 return compiled
