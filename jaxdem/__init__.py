@@ -49,6 +49,8 @@ programs of its last run while the solver's modules are imported
 
 
 def __getattr__(name: str):
+    if name.startswith("__"):  # probes of tools (``__wrapped__``): not a submodule
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
     module = _EXPORTS.get(name)
     try:
         value = (getattr(importlib.import_module(module), name) if module is not None

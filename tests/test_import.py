@@ -52,7 +52,6 @@ def test_import_changes_nothing():
     assert seen["x64"] is False and seen["cache"] and seen["env"] and all(seen["api"])
 
 
-
 def test_import_of_the_package_and_command_line_loads_no_jax_and_names_keep_their_objects():
     """``import jaxdem`` and ``jaxdem.cli`` import neither JAX nor the solver (the command
     line reads its scene and starts loading stored programs while they are imported:
