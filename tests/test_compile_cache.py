@@ -77,7 +77,6 @@ def test_a_stored_program_is_loaded_beside_the_caller(xla_compiles, monkeypatch,
     np.testing.assert_array_equal(np.asarray(compiled(x)), 3.0 * np.arange(9.0) - 2.0)
 
 
-
 def test_a_warm_start_loads_the_last_runs_programs_before_they_are_asked_for(
         xla_compiles, monkeypatch, tmp_path):
     """``warm_start`` loads, on threads of its own, the stored programs that the last run
