@@ -82,7 +82,5 @@ class _Package(types.ModuleType):
 sys.modules[__name__].__class__ = _Package
 
 
-__all__ = ["BatchResult", "FactorOfSafety", "GroundReaction", "Reliability", "Result", "Scene",
-           "SceneError", "Status", "SweepResult", "config", "differentiable", "factor_of_safety",
-           "ground_reaction", "load_scene", "reliability", "solve", "solve_batch", "sweep"]
+__all__ = sorted([*_EXPORTS, "config"])
 __version__ = "0.1.0"

@@ -365,9 +365,11 @@ def warm_start(fingerprint: str) -> None:
     queue = collections.deque(sorted(sizes, key=sizes.get, reverse=True))
     if not queue:
         return
-    # The backend and the sparse solve's FFI targets here, on the caller's thread: the
-    # threads then import nothing that the caller may be importing at the same time.
+    # The backend, JAX's deserialiser and the sparse solve's FFI targets here, on the
+    # caller's thread: the threads then import nothing that the caller may be importing
+    # at the same time (but SciPy's BLAS, for a program that calls LAPACK).
     jax.devices()
+    from jax.experimental import serialize_executable  # noqa: F401
     try:
         import sparsax  # noqa: F401
     except ImportError:
