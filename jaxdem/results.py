@@ -379,7 +379,7 @@ def scene_bolts(scene, layout, state, active=None) -> list[dict[str, Any]]:
     return out
 
 
-_bolt_geometry = on_disk("bolt_geometry")(jax.jit(bolt_geometry))
+bolt_geometry_program = on_disk("bolt_geometry")(jax.jit(bolt_geometry))
 """One program (a few hundredths of a second to compile), where run op by op the
 function compiled some thirty primitives (0.5 s of the demo's result)."""
 
@@ -393,7 +393,7 @@ def bolt_anchors(model, state, layout=None) -> list[np.ndarray]:
     """
     if not model.n_bolts:
         return []
-    g = run_stored(_bolt_geometry, model, state)
+    g = run_stored(bolt_geometry_program, model, state)
     ends = np.stack([np.asarray(g.point_b), np.asarray(g.point_a)], axis=1)
     if layout is None:
         return list(ends)

@@ -192,6 +192,82 @@ def test_host_work_runs_once_while_a_program_compiles(xla_compiles):
     assert ran == ["jaxdem-host-task"] and len(xla_compiles) == 2
 
 
+def test_work_while_waiting_compiles_small_programs_that_run_stored_then_calls(monkeypatch):
+    """``while_waiting``'s task runs on the thread that would wait for a prefetched program
+    still compiling, before it waits; ``result_shapes`` gives the prefetched program's
+    result shapes; a program ``precompile``d for shapes alone is the one ``run_stored``
+    calls with arrays of those shapes (nothing compiled again)."""
+    monkeypatch.setattr(compile_cache, "_program_dir", lambda: None)
+    compile_ = compile_cache._xla_compile
+    events = []
+
+    def slow(lowered, quick=False, salt=None):
+        name = threading.current_thread().name
+        if name.startswith("jaxdem-compile"):
+            import time
+
+            time.sleep(0.5)  # the other core, still compiling
+        events.append(("compile", name))
+        return compile_(lowered, quick, salt)
+
+    monkeypatch.setattr(compile_cache, "_xla_compile", slow)
+    big = jax.jit(lambda x: (jnp.cos(x), {"sum": jnp.sum(x)}))
+    small = jax.jit(lambda y, s: s["sum"] + jnp.sum(y))
+    x = jnp.arange(13.0)
+    compile_cache._PENDING.clear()
+    compile_cache.prefetch(big, x)
+    out = compile_cache.result_shapes(big, x)
+    assert out[0].shape == (13,) and out[1]["sum"].shape == ()
+    assert compile_cache.result_shapes(big, jnp.arange(14.0)) is None  # never traced
+
+    def task():
+        events.append(("task", threading.current_thread().name))
+        compile_cache.precompile(small, out[0], out[1])
+
+    compile_cache.while_waiting(task)
+    compiled, waited = compile_cache.compiled_program(big, x)
+    assert waited > 0.0
+    main = threading.current_thread().name
+    assert events[:2] == [("task", main), ("compile", main)]  # before the big one came in
+    assert events[2][1].startswith("jaxdem-compile")
+    c, d = compiled(x)
+    np.testing.assert_allclose(compile_cache.run_stored(small, c, d),
+                               np.sum(np.cos(np.arange(13.0))) + np.sum(np.arange(13.0)))
+    assert len(events) == 3  # run_stored compiled nothing
+    compile_cache.compiled_program(big, jnp.arange(15.0))  # no prefetch, no wait: task spent
+    assert [e[0] for e in events].count("task") == 1
+
+
+def test_a_cold_tunnel_solve_compiles_its_host_steps_while_the_increment_compiles(monkeypatch):
+    """A cold single solve of an excavation with bolts compiles the programs of the removed
+    blocks' forces and of the bolts' anchors on the main thread while the increment is
+    still compiling on the other, not after it on the way to the answer."""
+    monkeypatch.setattr(compile_cache, "_program_dir", lambda: None)
+    compile_cache._COMPILED.clear()
+    compile_cache._SMALL.clear()
+    compile_cache._PENDING.clear()
+    compiler_ = compile_cache._compiler
+    finished = []
+
+    def recorded(fn, args, static, quick, path):
+        finish = compiler_(fn, args, static, quick, path)
+
+        def timed():
+            compiled = finish()
+            finished.append(getattr(fn, "__name__", ""))
+            return compiled
+
+        return timed
+
+    monkeypatch.setattr(compile_cache, "_compiler", recorded)
+    jax.clear_caches()
+    result = jaxdem.solve(parse_scene(jointed_tunnel(water=False, bolts=True)))
+    assert result.converged
+    assert "release_forces" in finished and "bolt_geometry" in finished
+    assert finished.index("release_forces") < finished.index("increment")
+    assert finished.index("bolt_geometry") < finished.index("increment")
+
+
 def _calls_in_trace(monkeypatch, name):
     """How often ``jaxdem.core._substep.<name>`` is called while the increment of a block on
     an incline is traced and lowered afresh."""
