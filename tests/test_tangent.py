@@ -117,13 +117,14 @@ def _tangent_and_difference(mdl, sub, du, frozen, held, band, rng, size, exact=F
 
 def test_bolt_length_derivatives_are_those_of_the_exact_motion():
     """The bolts' closed-form length, gradient and Hessian
-    (:func:`jaxdem.core.kinematics.bolt_length_derivatives`) against automatic derivatives
+    (:func:`jaxdem.core.kinematics.bolt_length_derivatives`; the Hessian made of its rank-one
+    terms, :func:`jaxdem.core.kinematics.bolt_hessian`) against automatic derivatives
     of the exact motion of the two anchors, rigid and strained (1e-12 relative): an
     anchor at r from its centroid goes to u + R(theta) (r + E(eps) r), as
     :func:`jaxdem.core.kinematics.move_blocks` moves it."""
     import jax
 
-    from jaxdem.core.kinematics import bolt_length_derivatives
+    from jaxdem.core.kinematics import bolt_hessian, bolt_length_derivatives
 
     def turned(v, angle):
         c, s = jnp.cos(angle), jnp.sin(angle)
@@ -145,7 +146,9 @@ def test_bolt_length_derivatives_are_those_of_the_exact_motion():
         d0, ra, rb = (jnp.asarray(rng.normal(0.0, 2.0, (n, 2))) for _ in range(3))
         scale = np.r_[0.05, 0.05, 0.3, 0.01, 0.01, 0.01][:ndof]
         x = jnp.asarray(rng.normal(0.0, 1.0, (n, 2 * ndof)) * np.tile(scale, 2))
-        L, g, H = bolt_length_derivatives(ndof, d0, ra, rb, x)
+        L, g, v, c = bolt_length_derivatives(ndof, d0, ra, rb, x)
+        H = bolt_hessian(v, c)
+        assert v.shape[1] == (3 if ndof == 3 else 7)  # within the tangent's 2 D places
         f = lambda *a, ndof=ndof: length(ndof, *a)  # noqa: E731
         L_ref, g_ref = jax.vmap(jax.value_and_grad(f, argnums=3))(d0, ra, rb, x)
         H_ref = jax.vmap(jax.hessian(f, argnums=3))(d0, ra, rb, x)

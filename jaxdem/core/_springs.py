@@ -23,7 +23,12 @@ import jax
 import jax.numpy as jnp
 
 from jaxdem.core._contact import Slots
-from jaxdem.core.kinematics import bolt_length_derivatives, gather_pairs, scatter_pairs
+from jaxdem.core.kinematics import (
+    bolt_hessian,
+    bolt_length_derivatives,
+    gather_pairs,
+    scatter_pairs,
+)
 from jaxdem.core.laws import SlotLaw, forces_in_state, held_elastic, mohr_coulomb
 from jaxdem.core.state import OPEN, SLIP, STICK, Model
 
@@ -75,8 +80,10 @@ class Springs(NamedTuple):
     free blocks), ``R_law`` the residual with the law's forces everywhere; ``stress`` (N, 3)
     of deformable cells (None for rigid blocks); of the bolts (nb, ..., None without):
     ``bolt_force`` (kN/m), ``bolt_state`` (0 elastic; :func:`_bolt_law`'s codes),
-    ``bolt_length`` (m), ``bolt_g``, ``bolt_H`` its gradient and Hessian in the
-    anchors' motions, ``bolt_rows`` its forces on the blocks. What
+    ``bolt_length`` (m), ``bolt_g`` its gradient in the anchors' motions and its Hessian
+    as rank-one terms ``bolt_Hv``, ``bolt_Hc``
+    (:func:`jaxdem.core.kinematics.bolt_length_derivatives`), ``bolt_rows`` its forces on
+    the blocks. What
     :func:`jaxdem.core._substep.commit_substep` reads of an evaluation on packed slots is
     laid out over all slots, the rest None (:func:`jaxdem.core._substep._unpacked`).
     """
@@ -99,7 +106,8 @@ class Springs(NamedTuple):
     bolt_state: jax.Array | None = None
     bolt_length: jax.Array | None = None
     bolt_g: jax.Array | None = None
-    bolt_H: jax.Array | None = None
+    bolt_Hv: jax.Array | None = None
+    bolt_Hc: jax.Array | None = None
     bolt_rows: jax.Array | None = None
 
 
@@ -148,7 +156,8 @@ def cell_stiffness(model: Model, free):
 
 
 def _bolt_kinematics(model: Model, sub: Sub, du):
-    """Length L (B,), its gradient g (B, 2 D) and Hessian H (B, 2 D, 2 D) in (du_a, du_b).
+    """Length L (B,), its gradient g (B, 2 D) and Hessian H in (du_a, du_b), as rank-one
+    terms H = sum_t c_t v_t v_t^T: v (B, T, 2 D), c (B, T).
 
     g is the bolt's row (the elongation of a small move, which turns with the
     anchor-to-anchor line) and H its change: F H is the bolt's geometric
@@ -161,8 +170,8 @@ def _bolt_kinematics(model: Model, sub: Sub, du):
     mask = jnp.concatenate([jnp.repeat(bolt.free_a[:, None], D, 1),
                             jnp.repeat(bolt.free_b[:, None], D, 1)], 1).astype(du.dtype)
     x = gather_pairs(du, bolt.a, bolt.b) * mask
-    L, g, H = bolt_length_derivatives(D, bolt.d0, bolt.ra, bolt.rb, x)
-    return L, g * mask, H * mask[:, :, None] * mask[:, None, :]
+    L, g, v, c = bolt_length_derivatives(D, bolt.d0, bolt.ra, bolt.rb, x)
+    return L, g * mask, v * mask[:, None, :], c
 
 
 def _bolt_law(model: Model, sub: Sub, L):
@@ -248,12 +257,13 @@ def evaluate(model: Model, sub: Sub, du, frozen, frozen_state, prev, band,
                            sub.Bn * d_n[:, None] - sub.Bs * d_s[:, None])
     bolts = {}
     if model.n_bolts:
-        L, g, H = _bolt_kinematics(model, sub, du)
+        L, g, Hv, Hc = _bolt_kinematics(model, sub, du)
         bf, bst = _bolt_law(model, sub, L)
         bolt = sub.bolt
         bolt_rows = -g * bf[:, None]
         internal = internal + scatter_pairs(model.n_blocks, bolt.a, bolt.b, bolt_rows)
-        bolts = dict(bolt_force=bf, bolt_state=bst, bolt_length=L, bolt_g=g, bolt_H=H,
+        bolts = dict(bolt_force=bf, bolt_state=bst, bolt_length=L, bolt_g=g, bolt_Hv=Hv,
+                     bolt_Hc=Hc,
                      bolt_rows=bolt_rows)
     stress = None
     if model.ndof == 6:
@@ -361,25 +371,30 @@ def _bolt_terms(model: Model, sub: Sub, ev: Springs, consistent):
     K_b = k g g^T + F H (:func:`_bolt_kinematics`): the axial spring (none for a
     plastic or slack bolt in the consistent tangent; the elastic one in the
     secant) and the geometric stiffness of its force, which holds a block hung
-    on a bolt sideways (F / L) and in rotation. Symmetric: written as its
-    eigen-pairs, so that every linear solver takes it as it takes the springs.
-    Its negative part (a block hung below its centroid is unstable in rotation)
-    is kept for the direct solvers and left out of the conjugate-gradient
-    iteration, which needs a positive definite matrix (Newton then converges
-    linearly there).
+    on a bolt sideways (F / L) and in rotation. Symmetric, and written as rank-one
+    terms already: g's and those of H (3 for rigid blocks, 7 for deformable ones, the
+    rest of the 2 D places zero), so that every linear solver takes it as it takes the
+    springs. Its negative part (a block hung below its centroid is unstable in rotation)
+    is kept for the direct solvers and left out of the conjugate-gradient iteration,
+    which needs a positive definite matrix (Newton then converges linearly there): for
+    it, K_b's eigen-pairs with the negative eigenvalues set to zero.
     """
     bolt = sub.bolt
     D = model.ndof
-    g, H, F = ev.bolt_g, ev.bolt_H, ev.bolt_force
+    g, F = ev.bolt_g, ev.bolt_force
     axial = jnp.where(bolt.active & ((ev.bolt_state == 0) | ~consistent), model.bolt_k, 0.0)
-    K = axial[:, None, None] * g[:, :, None] * g[:, None, :] + F[:, None, None] * H
-    K = jnp.where(bolt.active[:, None, None], 0.5 * (K + jnp.swapaxes(K, 1, 2)), 0.0)
-    lam, vec = jnp.linalg.eigh(K)
+    vec = jnp.concatenate([g[:, None, :], ev.bolt_Hv], 1)  # (B, T + 1, 2 D)
+    lam = jnp.concatenate([axial[:, None], F[:, None] * ev.bolt_Hc], 1)
+    lam = jnp.where(bolt.active[:, None], lam, 0.0)
     if model.linear_solver == "cg":
-        lam = jnp.maximum(lam, 0.0)
+        lam, vec = jnp.linalg.eigh(bolt_hessian(vec, lam))
+        lam, vec = jnp.maximum(lam, 0.0), jnp.swapaxes(vec, 1, 2)
+    else:
+        pad = 2 * D - vec.shape[1]
+        vec = jnp.pad(vec, ((0, 0), (0, pad), (0, 0)))
+        lam = jnp.pad(lam, ((0, 0), (0, pad)))
     nb = g.shape[0]
-    return (*bolt_term_blocks(model, bolt), jnp.swapaxes(vec, 1, 2).reshape(nb * 2 * D, 2 * D),
-            lam.reshape(-1))
+    return (*bolt_term_blocks(model, bolt), vec.reshape(nb * 2 * D, 2 * D), lam.reshape(-1))
 
 
 def n_bolt_terms(model: Model) -> int:

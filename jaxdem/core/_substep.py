@@ -966,7 +966,8 @@ def _unpacked(model: Model, sub: Sub, ev: Springs, sid) -> Springs:
         state=put(ev.state, jnp.full(sub.fn0.shape, OPEN, jnp.int32)),
         total_n=put(ev.total_n, sub.pw if model.has_water else zero), stress=ev.stress,
         bolt_force=ev.bolt_force, bolt_state=ev.bolt_state, bolt_length=ev.bolt_length,
-        bolt_g=ev.bolt_g, bolt_H=ev.bolt_H, bolt_rows=ev.bolt_rows)
+        bolt_g=ev.bolt_g, bolt_Hv=ev.bolt_Hv, bolt_Hc=ev.bolt_Hc,
+        bolt_rows=ev.bolt_rows)
 
 
 def newton_and_commit(mdl: Model, state: State, sub: Sub, st0, pairs, found: Detection,

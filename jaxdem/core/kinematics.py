@@ -185,15 +185,23 @@ def _anchor_motion(ndof, u, r):
 
 def bolt_length_derivatives(ndof, d0, ra, rb, x):
     """Anchor-to-anchor length of each bolt after the move x = (du_a, du_b), with its
-    gradient and Hessian in x, in closed form: L (B,), g (B, 2 D), H (B, 2 D, 2 D).
+    gradient and Hessian in x, in closed form: L (B,), g (B, 2 D) and the Hessian as T
+    weighted rank-one terms, H = sum_t c_t v_t v_t^T: v (B, T, 2 D), c (B, T)
+    (:func:`bolt_hessian`).
 
     ``d0`` (B, 2) = anchor a - anchor b at the sub-step's geometry, ``ra``, ``rb``
     the anchors from their blocks' centroids. Exact rigid motion (and strain), as
     :func:`move_blocks` applies it: the bolt's force comes from its actual
     elongation at any displacement, not from a sum of linearised increments. With
-    d = d0 + m_a - m_b, n = d / L and J = dd/dx: g = J^T n and
-    H = (J^T J - g g^T) / L + sum_c n_c d2d_c/dx2 (the string stiffness across the
-    bolt's line and the lever-arm terms of its anchors' rotations).
+    d = d0 + m_a - m_b, n = d / L, t = n turned a right angle and J = dd/dx: g = J^T n
+    and H = (J^T J - g g^T) / L + sum_c n_c d2d_c/dx2. In the plane J^T J - g g^T =
+    J^T t t^T J: the string stiffness across the bolt's line is one term, h h^T / L with
+    h = J^T t. The lever-arm terms of the anchors' rotations are one term a block, s e e^T
+    on its rotation (e the unit vector of theta, s = +-n . d2m/dtheta2); a deformable
+    block's coupling w of its rotation and strains, e w^T + w e^T, two more:
+    ((e + w)(e + w)^T - (e - w)(e - w)^T) / 2. So T = 3 for rigid blocks, 7 for
+    deformable ones: the tangent's terms without an eigen-decomposition of H (whose
+    LAPACK call made every run of a bolted scene import SciPy's LAPACK, 0.13-0.3 s).
     """
     D = ndof
     m_a, J_a, tt_a, te_a = _anchor_motion(ndof, x[:, :D], ra)
@@ -205,16 +213,28 @@ def bolt_length_derivatives(ndof, d0, ra, rb, x):
     n = d / L[:, None]
     J = jnp.concatenate([J_a, -J_b], -1)  # (B, 2, 2 D)
     g = jnp.einsum("bc,bcj->bj", n, J)
-    H = (jnp.einsum("bci,bcj->bij", J, J) - g[:, :, None] * g[:, None, :]) / L[:, None, None]
+    t = jnp.stack([-n[:, 1], n[:, 0]], -1)
+    vectors = [jnp.einsum("bc,bcj->bj", t, J)]
+    weights = [1.0 / L]
     # n . d2d/dx2: theta-theta of each block, and theta-strain of a deformable one.
     for side, tt, te in ((0, tt_a, te_a), (1, tt_b, te_b)):
         sign = 1.0 - 2.0 * side
         th = side * D + 2
-        H = H.at[:, th, th].add(sign * jnp.sum(n * tt, -1))
+        e = jnp.zeros_like(g).at[:, th].set(1.0)
+        vectors.append(e)
+        weights.append(sign * jnp.sum(n * tt, -1))
         if te is not None:
-            w = sign * jnp.einsum("bc,bck->bk", n, te)
-            H = H.at[:, th, th + 1:th + 4].add(w).at[:, th + 1:th + 4, th].add(w)
-    return L, g, H
+            w = jnp.zeros_like(g).at[:, th + 1:th + 4].set(
+                sign * jnp.einsum("bc,bck->bk", n, te))
+            half = jnp.full_like(L, 0.5)
+            vectors += [e + w, e - w]
+            weights += [half, -half]
+    return L, g, jnp.stack(vectors, 1), jnp.stack(weights, 1)
+
+
+def bolt_hessian(v, c):
+    """The Hessian (B, 2 D, 2 D) of its rank-one terms (:func:`bolt_length_derivatives`)."""
+    return jnp.einsum("bt,bti,btj->bij", c, v, v)
 
 
 def block_travel(model: Model, du):
