@@ -236,6 +236,11 @@ def test_work_while_waiting_compiles_small_programs_that_run_stored_then_calls(m
     assert len(events) == 3  # run_stored compiled nothing
     compile_cache.compiled_program(big, jnp.arange(15.0))  # no prefetch, no wait: task spent
     assert [e[0] for e in events].count("task") == 1
+    stale = []
+    compile_cache.while_waiting(lambda: stale.append(1))
+    compile_cache.prefetch(big, jnp.arange(16.0))  # a new prefetch drops the work before it
+    compile_cache.compiled_program(big, jnp.arange(16.0))
+    assert not stale
 
 
 def test_a_cold_tunnel_solve_compiles_its_host_steps_while_the_increment_compiles(monkeypatch):

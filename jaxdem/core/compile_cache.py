@@ -270,7 +270,7 @@ def _executable_of(blob: bytes, lapack: bool):
     from jax._src.lax.linalg import initialize_lapack
     from jax.experimental import serialize_executable
 
-    # A loaded program that calls LAPACK (the dense LU, a bolt's eigenvalues) does so
+    # A loaded program that calls LAPACK (the dense LU; the bolts' eigen-pairs under "cg") does so
     # without a lowering that would have set up its kernels first: without this it
     # crashes (the set-up imports SciPy's BLAS and LAPACK: 0.13 s, which a program
     # without LAPACK, the sparse path's, does not pay). The sparse solve's FFI targets,
@@ -561,8 +561,9 @@ def while_waiting(task) -> None:
     the demo, 2.7 s between the in-situ preload's compilation and the increment's end):
     the small programs of the solve's host steps that would be compiled after it, on
     the way to the answer (:func:`precompile`), are compiled there instead. A task
-    that never runs (no wait: the program was loaded, or came in time) is dropped, and
-    its work is done where it is needed; its errors are ignored for the same reason.
+    that never runs (no wait: the program was loaded, or came in time) is dropped at
+    the next :func:`prefetch`, and its work is done where it is needed; its errors are
+    ignored for the same reason.
     """
     with _LOCK:
         _WAITING_TASKS.append(task)
@@ -652,8 +653,10 @@ def prefetch(fn, *args, quick: bool = False, **static) -> float:
             _BACKGROUND.append(concurrent.futures.ThreadPoolExecutor(
                 max_workers=1, thread_name_prefix="jaxdem-compile"))
         # One at a time: a program never collected (the preload grew the pair
-        # capacity, so the increment came with other shapes) is let go.
+        # capacity, so the increment came with other shapes) is let go, and the
+        # work that was to be done while waiting for it (while_waiting) with it.
         _PENDING.clear()
+        _WAITING_TASKS.clear()
         _PENDING[key] = _BACKGROUND[0].submit(finish)
     return time.perf_counter() - t0
 
