@@ -503,10 +503,10 @@ class _Driver:
         in-situ preload (:meth:`preload`): on two cores neither waits for the
         other. ``force`` (1 + p, N, D) gives the loads' shapes. Where it would then
         wait, it compiles the small programs that come after the first increment: the
-        bolts' anchors (each stage's result) and, where the scene ``excavating``, the
-        forces of the blocks removed (:meth:`release`), in a cold run of the demo
-        0.35 s that were spent after the increment's compilation, on the way to the
-        answer.
+        bolts' anchors (each stage's result) and, where the scene excavates
+        (``excavating``), the forces of the blocks removed (:meth:`release`): in a cold
+        run of the demo 0.35 s that were spent after the increment's compilation, on the
+        way to the answer.
         """
         # The tracing is this thread's time, and counts as compilation; the XLA
         # compilation (or a stored program's load) runs beside what comes next.

@@ -263,8 +263,7 @@ def evaluate(model: Model, sub: Sub, du, frozen, frozen_state, prev, band,
         bolt_rows = -g * bf[:, None]
         internal = internal + scatter_pairs(model.n_blocks, bolt.a, bolt.b, bolt_rows)
         bolts = dict(bolt_force=bf, bolt_state=bst, bolt_length=L, bolt_g=g, bolt_Hv=Hv,
-                     bolt_Hc=Hc,
-                     bolt_rows=bolt_rows)
+                     bolt_Hc=Hc, bolt_rows=bolt_rows)
     stress = None
     if model.ndof == 6:
         # Deformable blocks: the stress (committed + D d_eps) resists the strains.

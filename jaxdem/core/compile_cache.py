@@ -515,6 +515,8 @@ def _compiler(fn, args, static, quick, path):
     _count(t1 - t0, 0.0)
     with _LOCK:
         _RESULTS[_key(fn, args, static, quick)[0]] = lowered.out_info
+        if len(_RESULTS) > MAX_SMALL:  # the oldest go: their programs were made long ago
+            del _RESULTS[next(iter(_RESULTS))]
 
     def finish():
         _start_host_tasks()

@@ -201,7 +201,7 @@ def bolt_length_derivatives(ndof, d0, ra, rb, x):
     block's coupling w of its rotation and strains, e w^T + w e^T, two more:
     ((e + w)(e + w)^T - (e - w)(e - w)^T) / 2. So T = 3 for rigid blocks, 7 for
     deformable ones: the tangent's terms without an eigen-decomposition of H (whose
-    LAPACK call made every run of a bolted scene import SciPy's LAPACK, 0.13-0.3 s).
+    LAPACK call made every run of a bolted scene import SciPy's LAPACK, 0.13-0.9 s).
     """
     D = ndof
     m_a, J_a, tt_a, te_a = _anchor_motion(ndof, x[:, :D], ra)
