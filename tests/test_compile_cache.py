@@ -246,8 +246,20 @@ def test_work_while_waiting_compiles_small_programs_that_run_stored_then_calls(m
 def test_a_cold_tunnel_solve_compiles_its_host_steps_while_the_increment_compiles(monkeypatch):
     """A cold single solve of an excavation with bolts compiles the programs of the removed
     blocks' forces and of the bolts' anchors on the main thread while the increment is
-    still compiling on the other, not after it on the way to the answer."""
+    still compiling on the other, not after it on the way to the answer. (This small
+    scene's increment may compile before the preload does, on a busy machine: the
+    background compilation is held up here, so that the main thread has to wait.)"""
     monkeypatch.setattr(compile_cache, "_program_dir", lambda: None)
+    compile_ = compile_cache._xla_compile
+
+    def slow(lowered, quick=False, salt=None):
+        if threading.current_thread().name.startswith("jaxdem-compile"):
+            import time
+
+            time.sleep(2.0)
+        return compile_(lowered, quick, salt)
+
+    monkeypatch.setattr(compile_cache, "_xla_compile", slow)
     compile_cache._COMPILED.clear()
     compile_cache._SMALL.clear()
     compile_cache._PENDING.clear()
