@@ -192,25 +192,33 @@ def test_host_work_runs_once_while_a_program_compiles(xla_compiles):
     assert ran == ["jaxdem-host-task"] and len(xla_compiles) == 2
 
 
+def _hold_background_compiles(monkeypatch, seconds, events=None):
+    """Every XLA compilation on the background thread takes ``seconds`` longer (a caller
+    that needs its program has to wait for it); with ``events``, each compilation appends
+    ("compile", its thread's name)."""
+    import time
+
+    compile_ = compile_cache._xla_compile
+
+    def slow(lowered, quick=False, salt=None):
+        name = threading.current_thread().name
+        if name.startswith("jaxdem-compile"):
+            time.sleep(seconds)
+        if events is not None:
+            events.append(("compile", name))
+        return compile_(lowered, quick, salt)
+
+    monkeypatch.setattr(compile_cache, "_xla_compile", slow)
+
+
 def test_work_while_waiting_compiles_small_programs_that_run_stored_then_calls(monkeypatch):
     """``while_waiting``'s task runs on the thread that would wait for a prefetched program
     still compiling, before it waits; ``result_shapes`` gives the prefetched program's
     result shapes; a program ``precompile``d for shapes alone is the one ``run_stored``
     calls with arrays of those shapes (nothing compiled again)."""
     monkeypatch.setattr(compile_cache, "_program_dir", lambda: None)
-    compile_ = compile_cache._xla_compile
     events = []
-
-    def slow(lowered, quick=False, salt=None):
-        name = threading.current_thread().name
-        if name.startswith("jaxdem-compile"):
-            import time
-
-            time.sleep(0.5)  # the other core, still compiling
-        events.append(("compile", name))
-        return compile_(lowered, quick, salt)
-
-    monkeypatch.setattr(compile_cache, "_xla_compile", slow)
+    _hold_background_compiles(monkeypatch, 0.5, events)  # the other core, still compiling
     big = jax.jit(lambda x: (jnp.cos(x), {"sum": jnp.sum(x)}))
     small = jax.jit(lambda y, s: s["sum"] + jnp.sum(y))
     x = jnp.arange(13.0)
@@ -250,16 +258,7 @@ def test_a_cold_tunnel_solve_compiles_its_host_steps_while_the_increment_compile
     scene's increment may compile before the preload does, on a busy machine: the
     background compilation is held up here, so that the main thread has to wait.)"""
     monkeypatch.setattr(compile_cache, "_program_dir", lambda: None)
-    compile_ = compile_cache._xla_compile
-
-    def slow(lowered, quick=False, salt=None):
-        if threading.current_thread().name.startswith("jaxdem-compile"):
-            import time
-
-            time.sleep(2.0)
-        return compile_(lowered, quick, salt)
-
-    monkeypatch.setattr(compile_cache, "_xla_compile", slow)
+    _hold_background_compiles(monkeypatch, 2.0)
     compile_cache._COMPILED.clear()
     compile_cache._SMALL.clear()
     compile_cache._PENDING.clear()
