@@ -350,15 +350,37 @@ COLS = ("wall", "start", "load", "imp", "build", "trace", "compile", "solve", "o
 
 
 def cpu_model() -> str:
-    """The processor's model name (the same kind of machine can be twice as fast or slow:
-    BENCHMARKS.md, "Twenty-fourth session")."""
+    """The processor's model name, with its family and model numbers and whether it has
+    AVX-512 where Linux says (machines of the same name differ: an "AMD EPYC" of family 25
+    model 17 with AVX-512 ran the cold demo in 4.4 s where one without took 7.3-12 s:
+    BENCHMARKS.md, "Forty-second session"), and the time of a Python loop of 3 million
+    additions (the median of 3), to scale figures taken on other machines by."""
+    name, fields = platform.processor() or "processor unknown", {}
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
+            key, _, value = line.partition(":")
+            fields.setdefault(key.strip(), value.strip())
     except OSError:
         pass
-    return platform.processor() or "processor unknown"
+    if "model name" in fields:
+        name = fields["model name"]
+        if "cpu family" in fields:
+            wide = "avx512f" in fields.get("flags", "").split()
+            name += (f" (family {fields['cpu family']} model {fields.get('model', '?')}, "
+                     f"{'' if wide else 'no '}AVX-512)")
+    return f"{name}, a Python loop of 3M additions {python_loop_s():.2f} s"
+
+
+def python_loop_s() -> float:
+    """Seconds for a Python loop of 3 million additions (the median of 3): how fast this
+    machine runs the host's Python (tracing, lowering, the command line)."""
+    times = []
+    for _ in range(3):
+        start, total = time.perf_counter(), 0
+        for i in range(3_000_000):
+            total += i
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
 
 
 def main() -> None:
