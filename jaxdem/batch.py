@@ -338,7 +338,8 @@ def _prepared(scene, params: tuple):
         _PREPARED.move_to_end(key)
         return hit[1:]
     model, state, layout = model_mod.build(scene)
-    # A batch on a CPU takes SuperLU where a single solve takes CG (linear_solver_for).
+    # A batch on a CPU takes the dense LU up to 600 unknowns, where a single solve takes
+    # the sparse path (linear_solver_for).
     unknowns = layout.n_rock * model.ndof
     model = dataclasses.replace(model, linear_solver=model_mod.linear_solver_for(
         scene.solver.linear_solver, unknowns, batch=True))

@@ -420,9 +420,11 @@ def test_a_stored_program_that_calls_lapack_is_loaded_with_it_set_up(tmp_path):
     """The dense path's program calls LAPACK (its LU): loaded in a fresh process, which
     compiles nothing, it needs LAPACK set up first (it crashed without), and gives the
     same answer bitwise."""
-    model, _, _ = model_mod.build(parse_scene(block_on_incline(30.0, 35.0)))
+    scene = {**block_on_incline(30.0, 35.0), "solver": {"linear_solver": "dense"}}
+    model, _, _ = model_mod.build(parse_scene(scene))
     assert model.linear_solver == "dense"
-    first, second = _stored_then_loaded(tmp_path, "block_on_incline(30.0, 35.0)")
+    first, second = _stored_then_loaded(
+        tmp_path, '{**block_on_incline(30.0, 35.0), "solver": {"linear_solver": "dense"}}')
     assert first["status"] == second["status"]
     assert second["u"] == first["u"]
     assert second["times"]["lower_s"] == 0.0 < first["times"]["lower_s"], (first, second)
@@ -463,15 +465,37 @@ def test_pcg_and_compaction_match_a_dense_solve():
 
 
 @pytest.mark.parametrize("unknowns, platform, expected", [
-    (300, "cpu", "dense"), (600, "cpu", "dense"), (603, "cpu", "sparse"),
-    (1800, "cpu", "sparse"), (6000, "cpu", "sparse"), (6003, "cpu", "sparse"),
-    (31_392, "cpu", "sparse"), (1800, "gpu", "dense"), (3579, "gpu", "dense"),
-    (30_003, "gpu", "dense"), (32_000, "tpu", "dense"), (32_003, "gpu", "cg"),
+    (9, "cpu", "sparse"), (300, "cpu", "sparse"), (600, "cpu", "sparse"),
+    (603, "cpu", "sparse"), (31_392, "cpu", "sparse"), (1800, "gpu", "dense"),
+    (3579, "gpu", "dense"), (30_003, "gpu", "dense"), (32_000, "tpu", "dense"),
+    (32_003, "gpu", "cg"),
 ])
 def test_auto_rule(unknowns, platform, expected):
-    """"auto": dense up to 600 unknowns on a CPU (32,000 on an accelerator: the 10,000-block
-    grid); above, sparse direct on a CPU; matrix-free CG on an accelerator (README, Solver)."""
-    assert model_mod.linear_solver_for("auto", unknowns, platform=platform) == expected
+    """"auto" for a single solve: sparse direct at every size on a CPU (sparsax installed);
+    dense up to 32,000 unknowns on an accelerator (the 10,000-block grid), matrix-free CG
+    above (README, Solver)."""
+    assert model_mod.linear_solver_for("auto", unknowns, platform=platform,
+                                       native_sparse=True) == expected
+
+
+@pytest.mark.parametrize("unknowns, expected", [
+    (300, "dense"), (600, "dense"), (603, "sparse"), (6003, "sparse"),
+])
+def test_auto_rule_without_sparsax(unknowns, expected):
+    """Where sparsax is not installed (its wheels are Linux's) a single CPU solve takes the
+    dense LU up to 600 unknowns, and the sparse path (SciPy's SuperLU through a host
+    callback) above."""
+    assert model_mod.linear_solver_for("auto", unknowns, platform="cpu",
+                                       native_sparse=False) == expected
+
+
+def test_sparsax_is_looked_up_not_imported():
+    """The rule asks whether sparsax is installed without importing it (its import sets
+    up SuiteSparse's FFI targets): here, where it is installed, a CPU solve is sparse."""
+    import importlib.util
+    installed = importlib.util.find_spec("sparsax") is not None
+    assert model_mod.linear_solver_for("auto", 300, platform="cpu") == (
+        "sparse" if installed else "dense")
 
 
 @pytest.mark.parametrize("unknowns, platform, expected", [
@@ -481,8 +505,9 @@ def test_auto_rule(unknowns, platform, expected):
 def test_auto_rule_for_a_batch(unknowns, platform, expected):
     """A batch on a CPU takes sparse direct from 600 unknowns on (its members factorised in
     one native call); on an accelerator the dense LU as for a single solve."""
-    assert model_mod.linear_solver_for("auto", unknowns, platform=platform,
-                                       batch=True) == expected
+    for native_sparse in (True, False):
+        assert model_mod.linear_solver_for("auto", unknowns, platform=platform, batch=True,
+                                           native_sparse=native_sparse) == expected
 
 
 @pytest.mark.parametrize("example", ["seed_example4_slope_wet", "seed_example2_tunnel"])
@@ -532,11 +557,17 @@ def test_explicit_choice_is_kept(choice):
 
 def test_scene_setting_reaches_the_model(monkeypatch):
     scene = stack(3)
-    assert model_mod.build(parse_scene(scene))[0].linear_solver == "dense"
+    cpu = jax.default_backend() == "cpu"
+    assert model_mod.build(parse_scene(scene))[0].linear_solver == ("sparse" if cpu else "dense")
     for choice in ("sparse", "cg", "dense"):
         m = model_mod.build(parse_scene(_with_solver(scene, linear_solver=choice)))[0]
         assert m.linear_solver == choice
-    # A "large" scene: lower the dense limit below this one's 9 unknowns.
+    # Without sparsax: dense, and a "large" scene (the dense limit below this one's 9
+    # unknowns) sparse on a CPU, through SciPy.
+    find_spec = model_mod.importlib.util.find_spec
+    monkeypatch.setattr(model_mod.importlib.util, "find_spec",
+                        lambda name, *a: None if name == "sparsax" else find_spec(name, *a))
+    assert model_mod.build(parse_scene(scene))[0].linear_solver == "dense"
     monkeypatch.setattr(model_mod, "_DENSE_UP_TO", 6)
     monkeypatch.setattr(model_mod, "_DENSE_UP_TO_ACCELERATOR", 6)
     large = parse_scene(scene)

@@ -28,6 +28,7 @@ Choices made here (documented for users in the README):
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import math
 
 import jax
@@ -38,7 +39,9 @@ from jaxdem.core.laws import intact_stiffness, plane_strain_elasticity
 from jaxdem.core.state import ROCK, WALL_FIXED, WALL_ROLLER, Model, State, empty_history
 
 _USE_CELLS_ABOVE = 400  # blocks; below this all-pairs boxes are cheaper
-_DENSE_UP_TO = 600  # unknowns; above this sparse direct (CPU) or iterative (GPU, batches)
+_DENSE_UP_TO = 600
+"""Unknowns up to which "auto" takes the dense path for a batch on a CPU, and for a single
+solve on a CPU where sparsax is not installed (above it: sparse direct)."""
 _DENSE_UP_TO_ACCELERATOR = 32_000
 """Unknowns up to which "auto" takes the dense path on a GPU or TPU (LU, Cholesky where the
 matrix is symmetric: :func:`jaxdem.core._linsolve.solve_dense`): its float64 matrix is
@@ -511,12 +514,19 @@ def _bolts(scene, polys, cents, pieces, tol) -> dict:
 
 
 def linear_solver_for(choice: str, unknowns: int, *, platform: str | None = None,
-                      batch: bool = False) -> str:
+                      batch: bool = False, native_sparse: bool | None = None) -> str:
     """The linear solver of the Newton iteration: the scene's ``solver.linear_solver``.
 
     "auto" decides by size and where the solve runs (BENCHMARKS.md, "Scaling:
     solver paths"):
 
+    - a single solve on a CPU: "sparse" at every size where sparsax is installed
+      (SuiteSparse inside the program). On the 80-block jointed tunnel of the
+      back-analysis benchmark a plain solve took 0.057 s against the dense path's
+      0.114, one with 6 parameters' sensitivities 0.128 against 0.214, and a small
+      scene's whole command 0.1-0.2 s less: the dense path's LAPACK kernels import
+      SciPy's BLAS and LAPACK, 90 modules (BENCHMARKS.md, "Forty-second session").
+      Without sparsax (its wheels are Linux's), as a batch:
     - up to ``_DENSE_UP_TO`` (600) unknowns, 200 rigid blocks: "dense"
       (LU; the limits were measured with Cholesky, which the dense path used
       before it took the unsymmetric slip tangent); on a GPU or TPU up to
@@ -547,6 +557,7 @@ def linear_solver_for(choice: str, unknowns: int, *, platform: str | None = None
       unknowns: degrees of freedom of the rock blocks (3 or 6 per block).
       platform: JAX platform ("cpu", "gpu", "tpu"); default the default backend.
       batch: the solve is a vmapped batch (jaxdem.batch), not a single scene.
+      native_sparse: whether sparsax is installed; default: looked up (not imported).
 
     Returns:
       "dense", "sparse" or "cg".
@@ -559,6 +570,10 @@ def linear_solver_for(choice: str, unknowns: int, *, platform: str | None = None
         return choice
     platform = platform or jax.default_backend()
     accelerator = platform != "cpu"
+    if native_sparse is None:
+        native_sparse = importlib.util.find_spec("sparsax") is not None
+    if not accelerator and not batch and native_sparse:
+        return "sparse"
     if unknowns <= (_DENSE_UP_TO_ACCELERATOR if accelerator else _DENSE_UP_TO):
         return "dense"
     if accelerator or (not batch and unknowns <= max(_CG_UP_TO, _DENSE_UP_TO)
