@@ -169,7 +169,8 @@ def test_several_cpu_devices_take_one_sample_each():
     refused before any work: jaxlib's batched LAPACK kernels on several CPU devices at
     once can deadlock (batch._one_per_device). One device keeps its cache-sized chunk."""
     scene = parse_scene(block_on_incline(25.0, 30.0))
-    model, state, _ = jaxdem.core.model.build(scene)
+    model, state = batch._prepared(scene, ("joints.base.friction_deg",))[:2]  # as a batch builds it
+    assert model.linear_solver == "dense"
     cpu = jax.devices("cpu")[0]
     assert batch._chunk_size(model, state, 64, [cpu, cpu]) == 1
     assert batch._chunk_size(model, state, 64, [cpu]) > 1

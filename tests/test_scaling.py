@@ -481,12 +481,14 @@ def test_auto_rule(unknowns, platform, expected):
 @pytest.mark.parametrize("unknowns, expected", [
     (300, "dense"), (600, "dense"), (603, "sparse"), (6003, "sparse"),
 ])
-def test_auto_rule_without_sparsax(unknowns, expected):
+def test_auto_rule_without_sparsax_or_in_float32(unknowns, expected):
     """Where sparsax is not installed (its wheels are Linux's) a single CPU solve takes the
     dense LU up to 600 unknowns, and the sparse path (SciPy's SuperLU through a host
-    callback) above."""
+    callback) above; so does a float32 scene (its dense LU refined in float64)."""
     assert model_mod.linear_solver_for("auto", unknowns, platform="cpu",
                                        native_sparse=False) == expected
+    assert model_mod.linear_solver_for("auto", unknowns, platform="cpu", native_sparse=True,
+                                       float64=False) == expected
 
 
 def test_sparsax_is_looked_up_not_imported():
@@ -562,6 +564,8 @@ def test_scene_setting_reaches_the_model(monkeypatch):
     for choice in ("sparse", "cg", "dense"):
         m = model_mod.build(parse_scene(_with_solver(scene, linear_solver=choice)))[0]
         assert m.linear_solver == choice
+    assert model_mod.build(parse_scene(_with_solver(scene, dtype="float32")))[0].linear_solver \
+        == "dense"
     # Without sparsax: dense, and a "large" scene (the dense limit below this one's 9
     # unknowns) sparse on a CPU, through SciPy.
     find_spec = model_mod.importlib.util.find_spec

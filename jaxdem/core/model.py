@@ -397,7 +397,8 @@ def build(scene, capacity: int | None = None) -> tuple[Model, State, Layout]:
         n_blocks=N, n_vertices=V, n_big=len(big), use_cells=use_cells,
         cell_capacity=cell_capacity, narrow_vertices=narrow_vertices,
         wide_capacity=wide_capacity, touch_capacity=touch_capacity,
-        linear_solver=linear_solver_for(s.linear_solver, n_rock * D),
+        linear_solver=linear_solver_for(s.linear_solver, n_rock * D,
+                                        float64=dtype == np.float64),
         events=s.bond_failure == "events", n_bolts=len(bolts["k"]), has_water=water is not None,
         ndof=D,
     )
@@ -514,19 +515,23 @@ def _bolts(scene, polys, cents, pieces, tol) -> dict:
 
 
 def linear_solver_for(choice: str, unknowns: int, *, platform: str | None = None,
-                      batch: bool = False, native_sparse: bool | None = None) -> str:
+                      batch: bool = False, native_sparse: bool | None = None,
+                      float64: bool = True) -> str:
     """The linear solver of the Newton iteration: the scene's ``solver.linear_solver``.
 
     "auto" decides by size and where the solve runs (BENCHMARKS.md, "Scaling:
     solver paths"):
 
-    - a single solve on a CPU: "sparse" at every size where sparsax is installed
-      (SuiteSparse inside the program). On the 80-block jointed tunnel of the
+    - a single solve on a CPU in float64: "sparse" at every size where sparsax is
+      installed (SuiteSparse inside the program). On the 80-block jointed tunnel of the
       back-analysis benchmark a plain solve took 0.057 s against the dense path's
       0.114, one with 6 parameters' sensitivities 0.128 against 0.214, and a small
       scene's whole command 0.1-0.2 s less: the dense path's LAPACK kernels import
       SciPy's BLAS and LAPACK, 90 modules (BENCHMARKS.md, "Forty-second session").
-      Without sparsax (its wheels are Linux's), as a batch:
+      Without sparsax (its wheels are Linux's), in float32 (whose dense LU is refined
+      in float64, :func:`jaxdem.core._linsolve.refined_solve`: two blocks falling side
+      by side land on a ledge in tests/test_hard_cases.py, where the sparse path's
+      answer does not) and as a batch:
     - up to ``_DENSE_UP_TO`` (600) unknowns, 200 rigid blocks: "dense"
       (LU; the limits were measured with Cholesky, which the dense path used
       before it took the unsymmetric slip tangent); on a GPU or TPU up to
@@ -558,6 +563,7 @@ def linear_solver_for(choice: str, unknowns: int, *, platform: str | None = None
       platform: JAX platform ("cpu", "gpu", "tpu"); default the default backend.
       batch: the solve is a vmapped batch (jaxdem.batch), not a single scene.
       native_sparse: whether sparsax is installed; default: looked up (not imported).
+      float64: the scene solves in float64 (``solver.dtype``).
 
     Returns:
       "dense", "sparse" or "cg".
@@ -572,7 +578,7 @@ def linear_solver_for(choice: str, unknowns: int, *, platform: str | None = None
     accelerator = platform != "cpu"
     if native_sparse is None:
         native_sparse = importlib.util.find_spec("sparsax") is not None
-    if not accelerator and not batch and native_sparse:
+    if not accelerator and not batch and float64 and native_sparse:
         return "sparse"
     if unknowns <= (_DENSE_UP_TO_ACCELERATOR if accelerator else _DENSE_UP_TO):
         return "dense"
