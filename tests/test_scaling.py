@@ -493,11 +493,21 @@ def test_auto_rule_without_sparsax_or_in_float32(unknowns, expected):
 
 def test_sparsax_is_looked_up_not_imported():
     """The rule asks whether sparsax is installed without importing it (its import sets
-    up SuiteSparse's FFI targets): here, where it is installed, a CPU solve is sparse."""
-    import importlib.util
-    installed = importlib.util.find_spec("sparsax") is not None
-    assert model_mod.linear_solver_for("auto", 300, platform="cpu") == (
-        "sparse" if installed else "dense")
+    up SuiteSparse's FFI targets): in a fresh process, a CPU solve's choice is sparse where
+    sparsax is installed, and sparsax is still not imported after it."""
+    code = ("import importlib.util, json, sys\n"
+            "from jaxdem.core.model import linear_solver_for\n"
+            "choice = linear_solver_for('auto', 300, platform='cpu')\n"
+            "print(json.dumps([choice, importlib.util.find_spec('sparsax') is not None,\n"
+            "                  'sparsax' in sys.modules]))\n")
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[1]) + os.pathsep
+           + os.environ.get("PYTHONPATH", "")}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    choice, installed, imported = json.loads(out.stdout.strip().splitlines()[-1])
+    assert choice == ("sparse" if installed else "dense")
+    assert not imported
 
 
 @pytest.mark.parametrize("unknowns, platform, expected", [
@@ -559,8 +569,10 @@ def test_explicit_choice_is_kept(choice):
 
 def test_scene_setting_reaches_the_model(monkeypatch):
     scene = stack(3)
-    cpu = jax.default_backend() == "cpu"
-    assert model_mod.build(parse_scene(scene))[0].linear_solver == ("sparse" if cpu else "dense")
+    on_cpu = jax.default_backend() == "cpu"
+    native = model_mod.importlib.util.find_spec("sparsax") is not None
+    assert model_mod.build(parse_scene(scene))[0].linear_solver == (
+        "sparse" if on_cpu and native else "dense")
     for choice in ("sparse", "cg", "dense"):
         m = model_mod.build(parse_scene(_with_solver(scene, linear_solver=choice)))[0]
         assert m.linear_solver == choice

@@ -526,7 +526,7 @@ def linear_solver_for(choice: str, unknowns: int, *, platform: str | None = None
       installed (SuiteSparse inside the program). On the 80-block jointed tunnel of the
       back-analysis benchmark a plain solve took 0.057 s against the dense path's
       0.114, one with 6 parameters' sensitivities 0.128 against 0.214, and a small
-      scene's whole command 0.1-0.2 s less: the dense path's LAPACK kernels import
+      scene's warm run 0.07-0.17 s less: the dense path's LAPACK kernels import
       SciPy's BLAS and LAPACK, 90 modules (BENCHMARKS.md, "Forty-second session").
       Without sparsax (its wheels are Linux's), in float32 (whose dense LU is refined
       in float64, :func:`jaxdem.core._linsolve.refined_solve`: two blocks falling side
