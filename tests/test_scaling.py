@@ -219,12 +219,7 @@ def test_slip_solves_keep_no_factor_behind():
     (measured with the tokens). Measured in a fresh process, as the median growth over
     spans of 15 solves.
     (That these solves are right: test_sparse_solve_of_one_iteration_matches_dense_lu.)"""
-    root = str(Path(__file__).parents[1])
-    env = {**os.environ, "PYTHONPATH": root + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    out = subprocess.run([sys.executable, "-c", _SLIP_SOLVES_MEMORY], env=env,
-                         capture_output=True, text=True, timeout=600)
-    assert out.returncode == 0, out.stderr[-3000:]
-    measured = json.loads(out.stdout.strip().splitlines()[-1])
+    measured = _fresh_json(_SLIP_SOLVES_MEMORY)
     assert measured["unknowns"] == 7680
     assert measured["mb_a_solve"] < 1.0, f"{measured['mb_a_solve']:.2f} MB kept a slip solve"
 
@@ -366,6 +361,17 @@ def test_float32_dense_solve_is_refined_to_float32s_rounding():
     assert error(jnp.linalg.solve(jnp.asarray(K), jnp.asarray(b))) > 100 * error(refined)
 
 
+def _fresh_json(code: str, timeout: float = 600, **env):
+    """Run ``code`` in a new Python process (this checkout first on its path, ``env`` added
+    to the environment) and return the JSON it prints last."""
+    env = {**os.environ, **env}
+    env["PYTHONPATH"] = str(Path(__file__).parents[1]) + os.pathsep + env.get("PYTHONPATH", "")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         timeout=timeout)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
 def _stored_then_loaded(tmp_path, scene_code):
     """The scene ``scene_code`` makes (a Python expression over tests/scenes.py), solved in
     two fresh processes sharing one cache directory: what each says of its compilation,
@@ -383,18 +389,10 @@ def _stored_then_loaded(tmp_path, scene_code):
                               u=[b["u"] for b in result.blocks],
                               lapack="scipy.linalg" in sys.modules)))
     """)
-    env = {**os.environ, "JAXDEM_CACHE_DIR": str(tmp_path / "cache")}
-    env["PYTHONPATH"] = str(Path(__file__).parents[1]) + os.pathsep + env.get("PYTHONPATH", "")
-
-    def run():
-        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
-                             text=True, timeout=600)
-        assert out.returncode == 0, out.stderr[-3000:]
-        return json.loads(out.stdout.strip().splitlines()[-1])
-
-    first = run()
+    cache = str(tmp_path / "cache")
+    first = _fresh_json(code, JAXDEM_CACHE_DIR=cache)
     assert any((tmp_path / "cache" / "programs").iterdir())
-    return first, run()
+    return first, _fresh_json(code, JAXDEM_CACHE_DIR=cache)
 
 
 def test_a_sparse_program_is_stored_and_a_second_process_compiles_nothing(tmp_path):
@@ -500,12 +498,7 @@ def test_sparsax_is_looked_up_not_imported():
             "choice = linear_solver_for('auto', 300, platform='cpu')\n"
             "print(json.dumps([choice, importlib.util.find_spec('sparsax') is not None,\n"
             "                  'sparsax' in sys.modules]))\n")
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[1]) + os.pathsep
-           + os.environ.get("PYTHONPATH", "")}
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
-                         timeout=300)
-    assert out.returncode == 0, out.stderr[-3000:]
-    choice, installed, imported = json.loads(out.stdout.strip().splitlines()[-1])
+    choice, installed, imported = _fresh_json(code, timeout=300)
     assert choice == ("sparse" if installed else "dense")
     assert not imported
 
