@@ -241,7 +241,7 @@ class Needs(NamedTuple):
     new_failures: jax.Array
 
 
-def _newton(model: Model, sub: Sub, st0, warm=False):
+def _newton(model: Model, sub: Sub, st0, warm=False, loop=None):
     """Newton iteration on du at fixed geometry (one sub-step).
 
     The elastic (secant) matrix first; the slip tangent (with the slip coupling on
@@ -258,6 +258,11 @@ def _newton(model: Model, sub: Sub, st0, warm=False):
     balance (its residual within the tolerance), so that this one only corrects for the
     geometry it moved, from the states of an equilibrium nearby: the slip tangent is
     tried from its second iteration on (below).
+
+    ``loop``: what runs the iteration, a function of :func:`jax.lax.while_loop`'s
+    signature (cond, body, init), which it is by default. A diagnostic passes a
+    ``while_loop`` whose body also hands each :class:`Iterate` to the host
+    (``benchmarks/newton_trace.py``).
 
     Returns the :class:`Iterate` at the end (its ``du`` the sub-step's increment).
     """
@@ -525,7 +530,7 @@ def _newton(model: Model, sub: Sub, st0, warm=False):
                    flat=zero, fails=zero,
                    unbalanced=Unbalanced(jnp.zeros(named, jnp.int32), jnp.zeros(named, dtype),
                                          jnp.full(named, -1.0, dtype)))
-    return jax.lax.while_loop(lambda c: ~c.done, body, init)
+    return (jax.lax.while_loop if loop is None else loop)(lambda c: ~c.done, body, init)
 
 
 def _line_search(merit_at, du, ddu, scale, m0, on):
@@ -790,7 +795,7 @@ def _admissibility(model: Model, sub: Sub, ev: Springs):
             jnp.max(excess, initial=0.0))
 
 
-def substep(model: Model, state: State, loads: Loads, warm=False):
+def substep(model: Model, state: State, loads: Loads, warm=False, loop=None):
     """Detect contacts, iterate to equilibrium at fixed geometry, commit the motion.
 
     ``need.new_failures`` says whether a spring with cohesion or tensile strength
@@ -799,14 +804,14 @@ def substep(model: Model, state: State, loads: Loads, warm=False):
     :func:`breaking`): it loses them from the next sub-step on, so the increment
     cannot end here (a slot that failed would be reported with its intact strength). A
     clean joint's spring has nothing to lose: its slip asks for no further sub-step.
-    ``warm``: see :func:`_newton`.
+    ``warm`` and ``loop``: see :func:`_newton`.
     """
     # The rows Bn, Bs are formed for the touching slots alone (pack_slots), and the
     # balance summed over them: formed for all the detection's slots, gathered and summed
     # over, they cost seed example 3 with D 69 ms of a 313 ms sub-step (294,912 slots,
     # 8,370 touching; BENCHMARKS.md, "Thirty-eighth session").
     mdl, sub, st0, pairs, found = prepare_substep(model, state, loads, rows=False)
-    return newton_and_commit(mdl, state, sub, st0, pairs, found, warm)
+    return newton_and_commit(mdl, state, sub, st0, pairs, found, warm, loop)
 
 
 def pack_slots(model: Model, sub: Sub, st0, centroid=None):
@@ -971,17 +976,17 @@ def _unpacked(model: Model, sub: Sub, ev: Springs, sid) -> Springs:
 
 
 def newton_and_commit(mdl: Model, state: State, sub: Sub, st0, pairs, found: Detection,
-                      warm=False):
+                      warm=False, loop=None):
     """The rest of :func:`substep` once contacts are detected (``found``): Newton (on the
     touching slots: :func:`pack_slots`), then commit. Returns (the new state, du, the
     :class:`Iterate` at the end, the :class:`Needs`, the balance, the snapshot).
 
     The step is cut where a corner without a spring would pass into another block
     (:func:`corner_bound`): the sub-step then ends short of equilibrium, and the next
-    detection gives that corner its spring.
+    detection gives that corner its spring. ``warm`` and ``loop``: see :func:`_newton`.
     """
     packed, st0_packed, sid, too_many, touching = pack_slots(mdl, sub, st0, state.centroid)
-    c = _newton(mdl, packed, st0_packed, warm)
+    c = _newton(mdl, packed, st0_packed, warm, loop)
     scale, watch_full = corner_bound(mdl, sub, state.centroid, found.corners, c.du,
                                      packed.geo.a.shape[0])
     too_many = too_many | watch_full
