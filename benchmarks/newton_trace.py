@@ -106,11 +106,12 @@ def recording_loop(records: list):
     return loop
 
 
-def iteration_table(model, records, st0) -> None:
-    """One line an iteration of a sub-step replayed with :func:`recording_loop`."""
+def iteration_table(model, records) -> None:
+    """One line an iteration of a sub-step replayed with :func:`recording_loop`; the states
+    that changed are counted from the first iteration's (those of its evaluation)."""
     print(f"{'it':>4} {'residual/tol':>13} {'changed':>7} {'slip':>5} {'try':>3} "
           f"{'tan':>3} {'stall':>5} {'frozen':>6} {'step travel m':>13}  worst block")
-    before_st, before_du = np.asarray(st0), np.zeros_like(np.asarray(records[0].du))
+    before_st, before_du = np.asarray(records[0].st), np.zeros_like(np.asarray(records[0].du))
     for c in records:
         st = np.asarray(c.st)
         moved = float(np.max(np.asarray(block_travel(model, jnp.asarray(c.du - before_du)))))
@@ -132,6 +133,11 @@ def replay(model, state, loads, substeps: int, trace_from: int, only: int | None
         new, du, c, need, _, _ = one(model, state, loads, warm)
         travel = np.asarray(block_travel(model, du))
         residual, total = float(c.rnorm), total + int(c.it)
+        if bool((need.pairs > state.capacity) | need.cell_full | need.slots_full
+                | (need.touching > model.touch_capacity)):
+            print(f"sub-step {k}: a capacity overflowed (the run grew it and did the increment "
+                  "again): not replayed further")
+            break
         print(f"{k:4d} {int(c.it):4d} {int(c.converged):4d} {int(c.clipped):4d} "
               f"{residual:9.2e} {travel.max():9.2e} {int(travel.argmax()):7d} "
               f"{str(bool(need.new_failures)):>12} {int(np.sum(c.frozen)):6d}  "
@@ -140,9 +146,7 @@ def replay(model, state, loads, substeps: int, trace_from: int, only: int | None
             records = []
             traced = jax.jit(functools.partial(_substep.substep, loop=recording_loop(records)))
             jax.block_until_ready(traced(model, state, loads, warm))
-            # The starting states of the packed slots are the first record's ``st`` as the
-            # first evaluation left them: changes are counted from there on.
-            iteration_table(model, records, records[0].st)
+            iteration_table(model, records)
         state = new
         if bool(c.converged) and travel.max() <= model.touch_tol and not bool(need.new_failures):
             break
