@@ -12,7 +12,10 @@ one ``--substep`` names) is run again with each Newton iteration handed to the h
 each iteration printed: the residual (the largest free block's, in tolerances), the
 slots whose state changed and those slipping, the slip tangent tried / used, the stall
 count, the slots held frozen, how far the step moved the blocks (the largest travel of
-the step, m) and the block furthest out of balance.
+the step, m), the block furthest out of balance, the share of Newton's step taken and,
+where a closing slot bounded it, that slot: its two blocks, its state at the iteration's
+evaluation (open, stick, slip), its gap there (m) and its normal spring's force over that
+gap, kn x gap (kN/m: how far from closing it was, in force).
 
     PYTHONPATH=. python benchmarks/newton_trace.py SCENE                 # list the increments
     PYTHONPATH=. python benchmarks/newton_trace.py SCENE --increment 3   # replay the 4th
@@ -46,7 +49,7 @@ import jaxdem  # noqa: E402
 import jaxdem.solver as solver_mod  # noqa: E402
 from jaxdem.core import _substep  # noqa: E402
 from jaxdem.core.kinematics import block_travel  # noqa: E402
-from jaxdem.core.state import SLIP  # noqa: E402
+from jaxdem.core.state import OPEN, SLIP, STICK  # noqa: E402
 from jaxdem.core.status import Status  # noqa: E402
 from jaxdem.scene import parse_set_arguments  # noqa: E402
 
@@ -106,19 +109,45 @@ def recording_loop(records: list):
     return loop
 
 
-def iteration_table(model, records) -> None:
+STATES = {OPEN: "open", STICK: "stick", SLIP: "slip"}
+
+
+def slots_of(model, state, loads):
+    """The slots a sub-step's Newton iteration works on at ``state`` (as
+    ``jaxdem.core._substep.newton_and_commit`` packs them): their blocks ``a``, ``b``,
+    rows ``Bn``, gaps at the sub-step's start and normal stiffness ``kn``, as NumPy."""
+    @jax.jit
+    def packed(model, state, loads):
+        mdl, sub, st0, _, _ = _substep.prepare_substep(model, state, loads, rows=False)
+        p = _substep.pack_slots(mdl, sub, st0, state.centroid)[0]
+        return dict(a=p.geo.a, b=p.geo.b, Bn=p.Bn, gap=p.geo.gap, kn=p.prop.kn)
+
+    return {k: np.asarray(v) for k, v in packed(model, state, loads).items()}
+
+
+def iteration_table(model, records, slots) -> None:
     """One line an iteration of a sub-step replayed with :func:`recording_loop`; the states
-    that changed are counted from the first iteration's (those of its evaluation)."""
+    that changed are counted from the first iteration's (those of its evaluation). A step
+    that a closing slot bounded names it (``slots``: :func:`slots_of`), with its state and
+    gap at the evaluation the step was taken from."""
     print(f"{'it':>4} {'residual/tol':>13} {'changed':>7} {'slip':>5} {'try':>3} "
-          f"{'tan':>3} {'stall':>5} {'frozen':>6} {'step travel m':>13}  worst block")
+          f"{'tan':>3} {'stall':>5} {'frozen':>6} {'step travel m':>13} {'worst':>6} "
+          f"{'scale':>8}  cut by a closing slot: blocks, state, gap m, kn x gap kN/m")
     before_st, before_du = np.asarray(records[0].st), np.zeros_like(np.asarray(records[0].du))
     for c in records:
         st = np.asarray(c.st)
         moved = float(np.max(np.asarray(block_travel(model, jnp.asarray(c.du - before_du)))))
+        cut = ""
+        k = int(c.cut_by)
+        if k >= 0:
+            a, b = int(slots["a"][k]), int(slots["b"][k])
+            gap = slots["gap"][k] + slots["Bn"][k] @ np.concatenate([before_du[a], before_du[b]])
+            cut = (f"{a}-{b} {STATES.get(int(st[k]), int(st[k]))} {gap:.3g} "
+                   f"{slots['kn'][k] * gap:.3g}")
         print(f"{int(c.it) - 1:4d} {float(c.rprev):13.4g} {int(np.sum(st != before_st)):7d} "
               f"{int(np.sum(st == SLIP)):5d} {int(c.trying):3d} "
               f"{int(c.tangent):3d} {int(c.stall):5d} {int(np.sum(c.frozen)):6d} "
-              f"{moved:13.3g}  {int(c.unbalanced.ids[0])}")
+              f"{moved:13.3g} {int(c.unbalanced.ids[0]):6d} {float(c.scale):8.3g}  {cut}")
         before_st, before_du = st, np.asarray(c.du)
 
 
@@ -146,7 +175,7 @@ def replay(model, state, loads, substeps: int, trace_from: int, only: int | None
             records = []
             traced = jax.jit(functools.partial(_substep.substep, loop=recording_loop(records)))
             jax.block_until_ready(traced(model, state, loads, warm))
-            iteration_table(model, records)
+            iteration_table(model, records, slots_of(model, state, loads))
         state = new
         if bool(c.converged) and travel.max() <= model.touch_tol and not bool(need.new_failures):
             break

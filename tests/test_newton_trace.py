@@ -1,7 +1,7 @@
 """The Newton loop's ``loop`` (jaxdem.core._substep._newton): a sub-step run with a loop
 that hands each iteration to the host (benchmarks/newton_trace.py's) is the sub-step of
 the default ``jax.lax.while_loop``, and keeps one record an iteration, the last the
-iteration that ended it."""
+iteration that ended it; each record names the slot whose closing bounded its step."""
 
 from __future__ import annotations
 
@@ -14,11 +14,13 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scenes import jointed_tunnel
+from scenes import jointed_tunnel, slide_and_stop
 
 from jaxdem.core import model as model_mod
 from jaxdem.core._substep import substep
+from jaxdem.core.kinematics import block_travel
 from jaxdem.core.loads import make_loads
+from jaxdem.core.state import OPEN
 from jaxdem.scene import parse_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -57,6 +59,33 @@ def test_a_recording_loop_gives_the_substep_and_one_record_an_iteration():
                                rtol=0, atol=1e-12)
 
 
+def test_the_step_that_lands_a_sliding_block_is_cut_by_the_slot_it_closes():
+    # Seed example 1 with a gap of 2 cm: the block slides down its 30 degree slope
+    # (friction 15 degrees), a mechanism that the iteration follows by a step beyond
+    # Newton's, until the block meets the fixed block below it. That step is cut where
+    # the slot between the two closes: open at the evaluation it was taken from, with the
+    # gap between their faces (2 cm, the slope's direction is normal to the stop's face),
+    # closed at the next, the block moved by that gap.
+    tool, gap = _tool(), 0.02
+    model, state, _ = model_mod.build(parse_scene(slide_and_stop(gap=gap)))
+    loads = make_loads(model, model.f_ext)
+    records = []
+    jax.jit(functools.partial(substep, loop=tool.recording_loop(records)))(
+        model, state, loads, jnp.array(False))
+    cut = [i for i, r in enumerate(records) if int(r.cut_by) >= 0]
+    assert len(cut) == 1 and cut[0] + 1 < len(records)
+    i = cut[0]
+    k, before = int(records[i].cut_by), np.asarray(records[i - 1].du)
+    slots = tool.slots_of(model, state, loads)
+    assert {int(slots["a"][k]), int(slots["b"][k])} == {1, 2}  # the sliding block, the stop
+    a, b = int(slots["a"][k]), int(slots["b"][k])
+    at = slots["gap"][k] + slots["Bn"][k] @ np.concatenate([before[a], before[b]])
+    assert int(records[i].st[k]) == OPEN and abs(at - gap) <= 0.01 * gap
+    assert int(records[i + 1].st[k]) != OPEN and 0.0 < float(records[i].scale) < 1.0
+    moved = np.asarray(block_travel(model, jnp.asarray(records[i].du - before)))[1]
+    assert abs(moved - gap) <= 0.01 * gap
+
+
 def test_the_trace_command_lists_the_increments_and_traces_a_substep():
     out = subprocess.run(
         [sys.executable, str(TOOL),
@@ -65,6 +94,6 @@ def test_the_trace_command_lists_the_increments_and_traces_a_substep():
     assert "increment   0" in out and "converged" in out
     # The sub-step's line and one line an iteration of its trace, the last within tolerance.
     its = int(out.split("\n   0 ", 1)[1].split()[0])
-    table = out.split("worst block\n", 1)[1].splitlines()[:its]
+    table = out.split("kn x gap kN/m\n", 1)[1].splitlines()[:its]
     assert [int(line.split()[0]) for line in table] == list(range(its))
     assert float(table[-1].split()[1]) <= 1.0

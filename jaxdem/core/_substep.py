@@ -188,7 +188,12 @@ class Iterate(NamedTuple):
     stalled iterations in a row left the residual as it was (to :data:`FLAT`),
     ``lost`` the slip-tangent step of such a flat stall did not reduce the residual in
     this sub-step (a stall is then followed as a mechanism at once). ``unbalanced`` the
-    blocks furthest out of balance at the last evaluation (:class:`Unbalanced`).
+    blocks furthest out of balance at the last evaluation (:class:`Unbalanced`). The last
+    step: ``scale`` the share of Newton's step taken (0 where none was), ``cut_by`` the
+    slot whose closing bounded it (the whole step would have sunk it deeper than its
+    spring's compression under its blocks' forces; its index among ``sub``'s slots, the
+    packed ones in a sub-step: :func:`pack_slots`), -1 where nothing did, or the step
+    length or the line search did (for ``benchmarks/newton_trace.py``).
     """
 
     du: jax.Array
@@ -213,6 +218,8 @@ class Iterate(NamedTuple):
     flat: jax.Array
     fails: jax.Array
     unbalanced: Unbalanced
+    scale: jax.Array
+    cut_by: jax.Array
 
 
 class Detection(NamedTuple):
@@ -500,6 +507,8 @@ def _newton(model: Model, sub: Sub, st0, warm=False, loop=None):
                                                           ev.state, band), tol),
                                  c.du, ddu, scale, merit(ev, tol), search)
         du = jnp.where(converged, c.du, c.du + scale * ddu)
+        cut_by = jnp.where(jnp.isfinite(s_gap) & (s_gap < s_travel) & (scale >= s_gap)
+                           & ~overshoot & ~converged, jnp.argmin(s_slots), -1).astype(jnp.int32)
         finite = jnp.all(jnp.isfinite(du))
         it = c.it + 1
         done = converged | clipped | ~finite | (it >= model.max_iterations)
@@ -508,7 +517,8 @@ def _newton(model: Model, sub: Sub, st0, warm=False, loop=None):
                        clipped=clipped & ~converged, finite=finite, rnorm=rnorm * model.tol,
                        rprev=rnorm, rbest=rbest, stall=stall, settled=settled, trying=trying,
                        tangent=tangent, untried=untried, lost=lost, flat=flat, fails=fails,
-                       unbalanced=Unbalanced(worst.astype(jnp.int32), r_block[worst], rel))
+                       unbalanced=Unbalanced(worst.astype(jnp.int32), r_block[worst], rel),
+                       scale=jnp.where(converged, 0.0, scale).astype(dtype), cut_by=cut_by)
 
     inf = jnp.array(jnp.inf, dtype)
     # Counters int32 (a weakly typed jnp.array(0) plus an int32, as ``fails`` gets, comes
@@ -529,7 +539,8 @@ def _newton(model: Model, sub: Sub, st0, warm=False, loop=None):
                    tangent=jnp.array(False), untried=jnp.array(True), lost=jnp.array(False),
                    flat=zero, fails=zero,
                    unbalanced=Unbalanced(jnp.zeros(named, jnp.int32), jnp.zeros(named, dtype),
-                                         jnp.full(named, -1.0, dtype)))
+                                         jnp.full(named, -1.0, dtype)),
+                   scale=jnp.zeros((), dtype), cut_by=jnp.array(-1, jnp.int32))
     return (jax.lax.while_loop if loop is None else loop)(lambda c: ~c.done, body, init)
 
 
