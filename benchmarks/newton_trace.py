@@ -162,8 +162,7 @@ def replay(model, state, loads, substeps: int, trace_from: int, only: int | None
         new, du, c, need, _, _ = one(model, state, loads, warm)
         travel = np.asarray(block_travel(model, du))
         residual, total = float(c.rnorm), total + int(c.it)
-        if bool((need.pairs > state.capacity) | need.cell_full | need.slots_full
-                | (need.touching > model.touch_capacity)):
+        if bool(need.overflowed(model, state)):
             print(f"sub-step {k}: a capacity overflowed (the run grew it and did the increment "
                   "again): not replayed further")
             break

@@ -247,6 +247,12 @@ class Needs(NamedTuple):
     touching: jax.Array
     new_failures: jax.Array
 
+    def overflowed(self, model: Model, state: State):
+        """Whether the sub-step needed more than ``state``'s and ``model``'s capacities
+        (the increment then ends, and the host grows them and runs it again)."""
+        return ((self.pairs > state.capacity) | self.cell_full | self.slots_full
+                | (self.touching > model.touch_capacity))
+
 
 def _newton(model: Model, sub: Sub, st0, warm=False, loop=None):
     """Newton iteration on du at fixed geometry (one sub-step).

@@ -187,8 +187,7 @@ def substeps_to_equilibrium(model: Model, state: State, loads: Loads, tangents=N
         else:
             (st_new, du, newton, need, balance, snap), (dstate, dsnap) = substep_tangent(
                 model, c.state, loads, tangents["model"], c.dstate, tangents["loads"], warm=warm)
-        overflow = ((need.pairs > state.capacity) | need.cell_full | need.slots_full
-                    | (need.touching > model.touch_capacity))
+        overflow = need.overflowed(model, state)
         travel = c.travel + block_travel(model, du)
         small = jnp.max(block_travel(model, du)) <= model.touch_tol
         # A sub-step cut by the iteration limit that brought the residual below a
