@@ -419,11 +419,11 @@ def _newton(model: Model, sub: Sub, st0, warm=False, loop=None):
         # secant steps that followed it, at a residual no lower (to 2%) than that
         # stall's is a cycle: the tangent's step changes states, the secant walks back,
         # and the same stall is met again (seed example 3 with D at k0 = 1/3: a cycle of
-        # 9 iterations at 1.9e5 tolerances on block 991 until 11 slots had frozen, 117
-        # iterations in one sub-step). It is followed as a mechanism at once, as a flat
-        # stall whose tangent step failed: that load step 157 -> 84 iterations, the same
-        # mechanism (block 843); no bundled scene meets such a cycle (BENCHMARKS.md,
-        # "Forty-fifth session").
+        # 9 iterations at 1.9e5 tolerances on block 991, gone round eight times until 6
+        # slots had frozen, in a sub-step of 117 iterations). It is followed as a
+        # mechanism at once, as a flat stall whose tangent step failed: that load step
+        # 157 -> 84 iterations, the same mechanism (block 843); no bundled scene meets
+        # such a cycle (BENCHMARKS.md, "Forty-fifth session").
         stalls = (stall == 3) & ~trying
         lost = lost | (stalls & (rnorm >= 0.98 * c.stalled_at))
         stalled_at = jnp.where(stalls, jnp.minimum(c.stalled_at, rnorm), c.stalled_at)
