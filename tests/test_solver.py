@@ -235,32 +235,6 @@ def test_seed_example4_newton_iterations_stay_down():
     assert np.median(its) <= 20, its
 
 
-def test_seed_example3_with_d_finds_its_mechanism_within_100_iterations_an_increment():
-    """Seed example 3 with D at k0 = 1/3 (issue 30's case, benchmarks/scenes/ex3d.toml):
-    by Kirsch's stresses the walls reach the rock's strength at 59% of the release for a
-    lone opening (earlier beside the pillar) and brittle bonds break a group a sub-step,
-    so the answer is a mechanism of a piece of the broken wall. Issue 30 asks for an
-    admissible one with at most 100 Newton iterations in any increment: the failing load
-    step took 157 (a cycle of 9 iterations of secant stall and slip-tangent step on
-    block 991 in one sub-step) until a stall that comes back no lower than the one
-    before it is followed as a mechanism at once (84). The mechanism is a small piece
-    that moved, not a chatter of the iteration: no "back and forth" warning, and the
-    small-mechanism warning names it."""
-    from pathlib import Path
-
-    from jaxdem.results import SMALL_MECHANISM
-
-    scene = jaxdem.load_scene(Path(__file__).parents[1] / "examples" / "seed_example3_with_D.toml",
-                              set={"in_situ.k0": 0.3333})
-    result = jaxdem.solve(scene)
-    its = [i for stage in result.stages for i in stage["iterations"]]
-    assert result.status.value == "mechanism" and result.moving_blocks, result.status
-    assert result.admissibility["admissible"], result.admissibility
-    assert max(its) <= 100, its
-    assert not any("back and forth" in w for w in result.warnings), result.warnings
-    assert any(w.startswith(SMALL_MECHANISM) for w in result.warnings), result.warnings
-
-
 def test_a_preload_whose_detection_overflows_grows_it_and_gives_the_same_answer():
     """The in-situ preload of the jointed tunnel with one place too few for the narrow
     phase's wide pairs (its split forced: pairs of blocks with more than 3 vertices

@@ -27,10 +27,10 @@ past limit equilibrium, whose small residual would move it only by
 R / (eps k) an iteration), the slip tangent is used and the step goes the
 whole step length along the mechanism, so that it is followed and reported,
 not left to creep into the iteration limit; where R stood still in the stall (a
-block sliding free) and that slip-tangent step did not reduce it, or where a stall
-comes back no lower than one before it (a cycle), at the next stall at once. A slot
-whose state flips :data:`FREEZE_AFTER` times in one sub-step is frozen in its last
-state for the rest of that sub-step, which ends open/close chatter. Frozen slots only
+block sliding free) and that slip-tangent step did not reduce it, at the next stall
+at once. A slot whose state flips
+:data:`FREEZE_AFTER` times in one sub-step is frozen in its last state for
+the rest of that sub-step, which ends open/close chatter. Frozen slots only
 shape the path: a sub-step converges only if every block also balances with
 the forces the contact law gives (a frozen slot at its limit: within the
 tolerance), and returns those. A frozen slot that breaks its law there (stuck
@@ -187,10 +187,7 @@ class Iterate(NamedTuple):
     failed :data:`RETRY_LIMIT` times (``fails``), in this sub-step, ``flat`` how many
     stalled iterations in a row left the residual as it was (to :data:`FLAT`),
     ``lost`` the slip-tangent step of such a flat stall did not reduce the residual in
-    this sub-step, or a stall came back no lower than an earlier one (a stall is then
-    followed as a mechanism at once), ``stalled_at`` the least residual (relative to the
-    tolerance) at which a stall has taken the slip tangent in this sub-step (inf before
-    one has). ``unbalanced`` the
+    this sub-step (a stall is then followed as a mechanism at once). ``unbalanced`` the
     blocks furthest out of balance at the last evaluation (:class:`Unbalanced`). The last
     step: ``scale`` the share of Newton's step taken (0 where none was), ``cut_by`` the
     slot whose closing bounded it (the whole step would have sunk it deeper than its
@@ -223,7 +220,6 @@ class Iterate(NamedTuple):
     unbalanced: Unbalanced
     scale: jax.Array
     cut_by: jax.Array
-    stalled_at: jax.Array
 
 
 class Detection(NamedTuple):
@@ -415,18 +411,6 @@ def _newton(model: Model, sub: Sub, st0, warm=False, loop=None):
         # it threw that tunnel's blocks a step length each sub-step (1,200
         # iterations).
         lost = c.lost | (c.tangent & ~c.trying & ~progress & (c.flat >= 2))
-        # A stall that comes back, after the slip-tangent step of an earlier one and the
-        # secant steps that followed it, at a residual no lower (to 2%) than that
-        # stall's is a cycle: the tangent's step changes states, the secant walks back,
-        # and the same stall is met again (seed example 3 with D at k0 = 1/3: a cycle of
-        # 9 iterations at 1.9e5 tolerances on block 991, gone round eight times until 6
-        # slots had frozen, in a sub-step of 117 iterations). It is followed as a
-        # mechanism at once, as a flat stall whose tangent step failed: that load step
-        # 157 -> 84 iterations, the same mechanism (block 843); no bundled scene meets
-        # such a cycle (BENCHMARKS.md, "Forty-fifth session").
-        stalls = (stall == 3) & ~trying
-        lost = lost | (stalls & (rnorm >= 0.98 * c.stalled_at))
-        stalled_at = jnp.where(stalls, jnp.minimum(c.stalled_at, rnorm), c.stalled_at)
         tangent = trying | (stall >= 3)
 
         # Joints between the columns of a stack carry nothing: their slots touch at
@@ -540,8 +524,7 @@ def _newton(model: Model, sub: Sub, st0, warm=False, loop=None):
                        rprev=rnorm, rbest=rbest, stall=stall, settled=settled, trying=trying,
                        tangent=tangent, untried=untried, lost=lost, flat=flat, fails=fails,
                        unbalanced=Unbalanced(worst.astype(jnp.int32), r_block[worst], rel),
-                       scale=jnp.where(converged, 0.0, scale).astype(dtype), cut_by=cut_by,
-                       stalled_at=stalled_at)
+                       scale=jnp.where(converged, 0.0, scale).astype(dtype), cut_by=cut_by)
 
     inf = jnp.array(jnp.inf, dtype)
     # Counters int32 (a weakly typed jnp.array(0) plus an int32, as ``fails`` gets, comes
@@ -563,8 +546,7 @@ def _newton(model: Model, sub: Sub, st0, warm=False, loop=None):
                    flat=zero, fails=zero,
                    unbalanced=Unbalanced(jnp.zeros(named, jnp.int32), jnp.zeros(named, dtype),
                                          jnp.full(named, -1.0, dtype)),
-                   scale=jnp.zeros((), dtype), cut_by=jnp.array(-1, jnp.int32),
-                   stalled_at=inf)
+                   scale=jnp.zeros((), dtype), cut_by=jnp.array(-1, jnp.int32))
     return (jax.lax.while_loop if loop is None else loop)(lambda c: ~c.done, body, init)
 
 
